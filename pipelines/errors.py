@@ -1,0 +1,24 @@
+"""The one exception the numerics raise for bad user input.
+
+The CLI prints it as a single line (``error: <file>: <problem>. <fix>``) and exits non-zero;
+anything else that escapes is a bug in wavelight and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(Exception):
+    """Bad user input: names the file (if any), what is wrong and what to do about it."""
+
+    def __init__(self, problem: str, path: str | Path | None = None, fix: str | None = None):
+        self.problem = problem.rstrip(".")
+        self.path = None if path is None else Path(path)
+        self.fix = fix
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        where = f"{self.path}: " if self.path is not None else ""
+        fix = f". {self.fix.rstrip('.')}." if self.fix else "."
+        return f"{where}{self.problem}{fix}"

@@ -1,0 +1,244 @@
+"""Scene files (DESIGN §2): camera.json, pose.json, correspondences.csv and the mesh.
+
+Readers validate everything a later stage relies on and raise `InputError` naming the file, the
+problem and the fix. They return plain frozen dataclasses of numpy arrays.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+
+
+@dataclass(frozen=True)
+class Camera:
+    """OpenCV pinhole camera with distortion (k1, k2, p1, p2, k3); pixel (0, 0)'s centre at (0, 0)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    def to_json(self) -> dict:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "dist": list(self.dist), **self.extra}
+
+
+@dataclass(frozen=True)
+class Pose:
+    """World -> camera transform x_cam = R X + t."""
+
+    R: np.ndarray
+    t: np.ndarray
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def camera_centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def to_json(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist(), **self.extra}
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """Triangle mesh in world coordinates with smooth per-vertex shading normals."""
+
+    vertices: np.ndarray  # (V, 3) float64
+    faces: np.ndarray  # (F, 3) int64
+    vertex_normals: np.ndarray  # (V, 3) float64 unit
+    notes: tuple[str, ...] = ()
+
+    @property
+    def scale(self) -> float:
+        """Diagonal of the bounding box (sets ray offsets and tolerances)."""
+        return float(np.linalg.norm(self.vertices.max(axis=0) - self.vertices.min(axis=0)))
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _load_json(path: Path, what: str) -> dict:
+    if not path.is_file():
+        raise InputError("file not found", path, f"create the {what} file (see README: scene folder)")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path, "fix the syntax") from None
+    if not isinstance(data, dict):
+        raise InputError("expected a JSON object", path, "see README for the file format")
+    return data
+
+
+def _number(data: dict, key: str, path: Path, positive: bool = False) -> float:
+    if key not in data:
+        raise InputError(f"missing field '{key}'", path, "see README for the file format")
+    value = data[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"field '{key}' must be a number, got {value!r}", path, "fix the value")
+    if not math.isfinite(value) or (positive and value <= 0):
+        need = "a positive finite number" if positive else "finite"
+        raise InputError(f"field '{key}' must be {need}, got {value!r}", path, "fix the value")
+    return float(value)
+
+
+def _array(data: dict, key: str, shape: tuple[int, ...], path: Path) -> np.ndarray:
+    if key not in data:
+        raise InputError(f"missing field '{key}'", path, "see README for the file format")
+    try:
+        arr = np.asarray(data[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"field '{key}' must be numbers of shape {shape}", path, "fix the value") from None
+    if arr.shape != shape:
+        raise InputError(f"field '{key}' has shape {arr.shape}, expected {shape}", path, "fix the value")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"field '{key}' has non-finite values", path, "fix the value")
+    return arr
+
+
+def read_camera(path: str | Path) -> Camera:
+    path = Path(path)
+    data = _load_json(path, "camera.json")
+    width, height = _number(data, "width", path, True), _number(data, "height", path, True)
+    if width != int(width) or height != int(height):
+        raise InputError("width and height must be whole numbers of pixels", path, "fix the values")
+    dist = data.get("dist", [0.0] * 5)
+    dist_arr = _array({"dist": dist}, "dist", (len(dist),) if isinstance(dist, list) else (5,), path)
+    if dist_arr.size not in (4, 5, 8, 12, 14):
+        raise InputError(f"field 'dist' has {dist_arr.size} coefficients, expected 5 (k1, k2, p1, p2, k3)",
+                         path, "fix the value")
+    dist5 = np.zeros(5)
+    dist5[: min(5, dist_arr.size)] = dist_arr[:5]
+    known = {"width", "height", "fx", "fy", "cx", "cy", "dist"}
+    return Camera(int(width), int(height), _number(data, "fx", path, True), _number(data, "fy", path, True),
+                  _number(data, "cx", path), _number(data, "cy", path), tuple(float(x) for x in dist5),
+                  extra={k: v for k, v in data.items() if k not in known})
+
+
+def read_pose(path: str | Path) -> Pose:
+    path = Path(path)
+    data = _load_json(path, "pose.json")
+    R = _array(data, "R", (3, 3), path)
+    t = _array(data, "t", (3,), path)
+    ortho_err = np.abs(R @ R.T - np.eye(3)).max()
+    if ortho_err > 1e-4 or np.linalg.det(R) < 0:
+        problem = (f"R is not a rotation (|R Rt - I| = {ortho_err:.2g})" if ortho_err > 1e-4
+                   else "R is a reflection (det < 0)")
+        raise InputError(problem, path, "write an orthonormal R with det +1 (or rerun wavelight register)")
+    # Re-orthonormalise the small residue so that downstream geometry is exact.
+    u, _, vt = np.linalg.svd(R)
+    known = {"R", "t"}
+    return Pose(u @ vt, t, extra={k: v for k, v in data.items() if k not in known})
+
+
+def read_correspondences(path: str | Path, min_points: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Read `u,v,x,y,z` rows -> (uv (n, 2), xyz (n, 3)) float64."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path, "create correspondences.csv with header u,v,x,y,z")
+    try:
+        rows = list(csv.reader(path.read_text().splitlines()))
+    except UnicodeDecodeError:
+        raise InputError("not a text CSV file", path, "save it as plain CSV with header u,v,x,y,z") from None
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    header = [c.strip().lower() for c in rows[0]] if rows else []
+    if header != ["u", "v", "x", "y", "z"]:
+        raise InputError(f"header must be 'u,v,x,y,z', got {','.join(header) or 'nothing'!r}", path,
+                         "fix the first line")
+    values = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if len(row) != 5:
+            raise InputError(f"line {lineno} has {len(row)} cells, expected 5", path, "fix that line")
+        try:
+            vals = [float(c) for c in row]
+        except ValueError:
+            raise InputError(f"line {lineno} has a non-numeric cell", path, "fix that line") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(f"line {lineno} has a non-finite value", path, "fix that line")
+        values.append(vals)
+    arr = np.asarray(values, dtype=np.float64).reshape(-1, 5)
+    if len(np.unique(arr, axis=0)) != len(arr):
+        raise InputError("duplicate rows", path, "remove the repeated correspondences")
+    if len(arr) < min_points:
+        raise InputError(f"{len(arr)} correspondences, at least {min_points} are needed", path,
+                         "click more 2D-3D point pairs")
+    return arr[:, :2], arr[:, 2:]
+
+
+def find_mesh(scene_dir: Path) -> Path:
+    """The scene's mesh file: mesh.<ext> for the supported extensions."""
+    found = [scene_dir / f"mesh{ext}" for ext in MESH_SUFFIXES if (scene_dir / f"mesh{ext}").is_file()]
+    if not found:
+        raise InputError("no mesh file", scene_dir / "mesh.obj",
+                         f"put the geometry in the scene folder as mesh{{{','.join(MESH_SUFFIXES)}}}")
+    return found[0]
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Load a mesh with trimesh; a multi-part file (scene) becomes one mesh.
+
+    Vertex normals from the file are kept as shading normals (else area-weighted face normals).
+    Degenerate (zero-area) and duplicate faces are removed and noted.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path, "check the mesh path")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if not np.all(np.isfinite(vertices)):
+        raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
+    normals = np.asarray(loaded.vertex_normals, dtype=np.float64)
+    notes = []
+    v = vertices[faces]
+    area2 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    scale = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    degenerate = area2 <= (1e-12 * scale) ** 2
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    duplicate = np.ones(len(faces), dtype=bool)
+    duplicate[first] = False
+    drop = degenerate | duplicate
+    if drop.all():
+        raise InputError("every triangle of the mesh is degenerate", path, "repair the mesh")
+    if degenerate.any():
+        notes.append(f"removed {int(degenerate.sum())} zero-area faces")
+    if (duplicate & ~degenerate).any():
+        notes.append(f"removed {int((duplicate & ~degenerate).sum())} duplicate faces")
+    faces = faces[~drop]
+    bad_n = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
+    if bad_n.any():
+        normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
+    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
+    return Mesh(vertices, faces, normals, tuple(notes))
