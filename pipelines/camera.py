@@ -34,8 +34,9 @@ def pixel_rays(camera: Camera, pose: Pose, rows: np.ndarray, cols: np.ndarray):
 
     uv = np.stack([cols, rows], axis=-1).astype(np.float64).reshape(-1, 1, 2)
     if np.any(camera.dist_coeffs != 0):
-        xy = cv2.undistortPointsIter(uv, camera.K, camera.dist_coeffs, None, None,
-                                     (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        xy = cv2.undistortPoints(uv, camera.K, camera.dist_coeffs, R=np.eye(3), P=np.eye(3),
+                                 criteria=criteria).reshape(-1, 2)
     else:
         xy = np.column_stack([(uv[:, 0, 0] - camera.cx) / camera.fx, (uv[:, 0, 1] - camera.cy) / camera.fy])
     d_cam = np.column_stack([xy, np.ones(len(xy))])

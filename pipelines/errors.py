@@ -20,5 +20,5 @@ class InputError(Exception):
 
     def line(self) -> str:
         where = f"{self.path}: " if self.path is not None else ""
-        fix = f". {self.fix.rstrip('.')}." if self.fix else "."
+        fix = f". {self.fix[:1].upper()}{self.fix[1:].rstrip('.')}." if self.fix else "."
         return f"{where}{self.problem}{fix}"

@@ -7,14 +7,13 @@ clipped (saturated) pixel, which the solvers must not fit as if exact (DESIGN §
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .fileio import atomic_output
 
 FLOAT_FORMATS = ("half", "float", "double")
 
@@ -157,13 +156,6 @@ def read_latlong(path: str | Path) -> np.ndarray:
     return img.pixels.astype(np.float64)
 
 
-def _atomic_target(path: Path) -> str:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return tmp
-
-
 def _write(path: str | Path, array: np.ndarray, fmt) -> Path:
     import OpenImageIO as oiio
 
@@ -174,19 +166,14 @@ def _write(path: str | Path, array: np.ndarray, fmt) -> Path:
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
     if fmt == oiio.HALF or fmt == oiio.FLOAT:
         spec.attribute("compression", "zip")
-    tmp = _atomic_target(path)
-    try:
-        out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, spec):
+    with atomic_output(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
             raise OSError(f"cannot write {path}: {oiio.geterror()}")
         ok = out.write_image(arr)
         out.close()
         if not ok:
             raise OSError(f"cannot write {path}: {out.geterror()}")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

@@ -74,14 +74,13 @@ def specular_lobe(normals: np.ndarray, views: np.ndarray, directions: np.ndarray
     """(P, N) specular BRDF values (ks = 1) times nothing else; zero where cosines == 0."""
     n = np.float32(shininess)
     if model == "blinn-phong":
-        h = views[:, None, :].astype(np.float32) + directions[None, :, :].astype(np.float32)
-        h /= np.linalg.norm(h, axis=2, keepdims=True).clip(1e-12)
-        c = np.einsum("pk,pnk->pn", normals.astype(np.float32), h)
+        # N.H without forming H: |v + d|^2 = 2 + 2 v.d
+        vd = views.astype(np.float32) @ directions.astype(np.float32).T
+        nv = np.einsum("pk,pk->p", normals, views).astype(np.float32)[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = (nv + normals.astype(np.float32) @ directions.astype(np.float32).T) / np.sqrt(
+                np.maximum(2.0 + 2.0 * vd, 1e-12))
         norm = (n + 8) / (8 * np.pi)
-    else:
-        r = 2.0 * np.einsum("pk,pk->p", normals, views)[:, None] * normals - views  # mirror of v
-        c = r.astype(np.float32) @ directions.astype(np.float32).T
-        norm = (n + 2) / (2 * np.pi) if model == "phong" else 1.0
     lobe = np.power(np.maximum(c, 0.0), n) * np.float32(norm)
     if model == "phong-classic":
         lobe = lobe / np.maximum(cosines, 1e-6)

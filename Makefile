@@ -1,0 +1,43 @@
+# wavelight: make demo (the sample scene end to end), make test, make bench.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
+DEMO   ?= build/demo
+SCENE  ?= spot_sun
+
+.PHONY: venv demo test test-fast bench clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	rm -f $(VENV)/.installed-*
+	touch $@
+
+# The main job on the bundled sample scene: a fresh copy in $(DEMO)/$(SCENE), every stage, results printed.
+demo: $(STAMP)
+	rm -rf $(DEMO)/$(SCENE)
+	mkdir -p $(DEMO)
+	cp -r sample_data/$(SCENE) $(DEMO)/$(SCENE)
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) visibility
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) render --light $(DEMO)/$(SCENE)/truth/env_latlong.exr \
+	    --material $(DEMO)/$(SCENE)/truth/material.json
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) status
+	@echo "results: $(DEMO)/$(SCENE)/out (render.exr, render.png, render_residual.png)"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+# everything but the slow full-resolution checks against Mitsuba
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	$(BIN)/python benchmarks/run.py
+
+clean:
+	rm -rf build .pytest_cache

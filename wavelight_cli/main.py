@@ -1,0 +1,185 @@
+"""`wavelight` command line: parse options, run the cached stages, print results.
+
+Heavy modules (cv2, trimesh, h5py, embreex, OpenImageIO) are imported inside the stages, so
+`wavelight --help` stays instant.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tomllib
+from pathlib import Path
+
+import click
+
+from pipelines.errors import InputError
+
+from . import stages
+from .scenefiles import scene_folder
+
+VIS_SECTION = "visibility"  # scene.toml section shared by every command that needs visibility
+
+
+class WavelightGroup(click.Group):
+    """Turns InputError into one `Error: ...` line and exit code 1 (no traceback)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except InputError as exc:
+            raise click.ClickException(exc.line()) from None
+        except KeyboardInterrupt:
+            click.echo("interrupted: the cache keeps finished work; rerun to continue", err=True)
+            sys.exit(130)
+
+
+def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
+    path = scene_dir / "scene.toml"
+    if not path.is_file():
+        return {}
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML ({exc})", path, "fix the syntax") from None
+    group = ctx.command
+    default_map: dict = {}
+    for section, values in data.items():
+        commands = [name for name, cmd in group.commands.items()
+                    if name == section or (section == VIS_SECTION and getattr(cmd, "uses_visibility", False))]
+        if not commands or not isinstance(values, dict):
+            known = sorted(set(group.commands) | {VIS_SECTION})
+            raise InputError(f"unknown section [{section}]", path, f"use one of: {', '.join(known)}")
+        for key, value in values.items():
+            for name in commands:
+                cmd = group.commands[name]
+                param = next((p for p in cmd.params if p.name == key.replace("-", "_")), None)
+                if param is None:
+                    if name == section:
+                        options = sorted(p.name for p in cmd.params if isinstance(p, click.Option))
+                        raise InputError(f"unknown key '{key}' in [{section}]", path,
+                                         f"valid keys: {', '.join(options)}")
+                    continue
+                try:
+                    with click.Context(cmd) as sub:
+                        param.type_cast_value(sub, value)
+                except click.BadParameter as exc:
+                    raise InputError(f"[{section}] {key} = {value!r}: {exc.message}", path, "fix the value") from None
+                default_map.setdefault(name, {})[param.name] = value
+    return default_map
+
+
+@click.group(cls=WavelightGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-s", "--scene", "scene_dir", default=".", show_default=True,
+              type=click.Path(file_okay=False, path_type=Path), help="Scene folder (see README).")
+@click.option("-q", "--quiet", is_flag=True, help="Only print errors and results.")
+@click.option("--lock-wait", default=600.0, show_default=True, type=click.FloatRange(0),
+              help="Seconds to wait for another run on the same scene.")
+@click.version_option(package_name="wavelight")
+@click.pass_context
+def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
+    """Recover the light (and reflectance) of a scene from one calibrated photo of a known mesh."""
+    ctx.obj = {"scene": scene_dir, "console": stages.Console(quiet), "lock_wait": lock_wait}
+    if ctx.invoked_subcommand is not None and scene_dir.is_dir():
+        try:
+            ctx.default_map = _load_scene_toml(ctx, scene_dir)
+        except InputError as exc:
+            raise click.ClickException(exc.line()) from None
+
+
+def visibility_options(f):
+    """Options of the visibility stage, shared by every command that needs it."""
+    opts = [
+        click.option("--resolution", "-R", default=32, show_default=True, type=int,
+                     help="Cube-map face resolution R (power of two): 3R^2 light directions on the hemisphere."),
+        click.option("--hemisphere/--sphere", default=True, show_default=True,
+                     help="Upper hemisphere only (the paper) or the full sphere of light."),
+        click.option("--supersample", default=1, show_default=True, type=int,
+                     help="k x k shadow rays per texel (fractional visibility; 1 = texel centre only)."),
+        click.option("--edge-margin", default=1, show_default=True, type=int,
+                     help="Pixels to drop around silhouettes and depth jumps (mixed pixels)."),
+        click.option("--ray-backend", "backend", default="embree", show_default=True,
+                     type=click.Choice(["embree", "reference"]), help="Ray caster (reference is slow, for tests)."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    f.uses_visibility = True
+    return f
+
+
+def _vis_opts(kw) -> stages.VisibilityOptions:
+    return stages.VisibilityOptions(kw.pop("resolution"), kw.pop("hemisphere"), kw.pop("supersample"),
+                                    kw.pop("edge_margin"), kw.pop("backend"))
+
+
+def _command(name, **kwargs):
+    def deco(f):
+        cmd = cli.command(name, **kwargs)(f)
+        cmd.uses_visibility = getattr(f, "uses_visibility", False)
+        return cmd
+    return deco
+
+
+@_command("visibility")
+@visibility_options
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def visibility_cmd(obj, force, **kw):
+    """Ray-cast the shadow of every light direction at every used pixel (cached, resumable)."""
+    scene = scene_folder(obj["scene"])
+    stages.visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
+
+
+@_command("render")
+@click.option("--light", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Lat-long light (EXR/HDR, DESIGN convention: row 0 = zenith, +Z up).")
+@click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
+              help="Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30}).")
+@click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
+              help="Reflectance model (overrides the material file).")
+@click.option("--kd", type=(float, float, float), default=None, help="Diffuse albedo RGB (default 1 1 1).")
+@click.option("--ks", type=(float, float, float), default=None, help="Specular RGB (default 0 0 0).")
+@click.option("--shininess", type=click.FloatRange(0), default=None, help="Specular exponent n.")
+@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@visibility_options
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def render_cmd(obj, light, material_file, model, kd, ks, shininess, exposure, force, **kw):
+    """Render the input view under a given light and material -> out/render.exr, out/render.png."""
+    scene = scene_folder(obj["scene"])
+    material = stages.material_from_options(material_file, model, kd, ks, shininess)
+    stages.render_stage(scene, _vis_opts(kw), light, material, exposure, obj["console"], force, obj["lock_wait"])
+
+
+@_command("check")
+@click.pass_obj
+def check_cmd(obj):
+    """Validate the scene folder's files (nothing is written); one line per file."""
+    scene = scene_folder(obj["scene"])
+    for line in stages.check_scene(scene):
+        click.echo(line)
+    click.echo(f"{scene.root}: ok")
+
+
+@_command("status")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@click.pass_obj
+def status_cmd(obj, as_json):
+    """Show each cached stage: fresh or stale, and why."""
+    from .cache import SceneCache
+
+    scene = scene_folder(obj["scene"])
+    rows = SceneCache(scene.root).status()
+    if as_json:
+        click.echo(json.dumps(rows, indent=1))
+        return
+    if not rows:
+        click.echo(f"no stage has run in {scene.root}")
+        return
+    click.echo(f"{'stage':<12} {'state':<6} {'seconds':>8}  {'finished':<25} reason")
+    for r in rows:
+        click.echo(f"{r['stage']:<12} {r['state']:<6} {r['seconds'] or 0:>8.2f}  {r['finished'] or '':<25} {r['reason']}")
+
+
+def main():  # pragma: no cover - console entry
+    cli()
