@@ -39,10 +39,15 @@ class _Backend:
         """World points -> float32 points in the recentred frame the kernel works in."""
         return (np.asarray(points, dtype=np.float64) - self.centre).astype(np.float32)
 
-    def occluded_local(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """`occluded` for float32 origins already in the recentred frame, on the calling thread."""
-        return self._occluded(np.ascontiguousarray(origins, dtype=np.float32),
-                              np.ascontiguousarray(directions, dtype=np.float32))
+    def occluded_local(self, origins: np.ndarray, directions: np.ndarray,
+                       tfar: np.ndarray | None = None) -> np.ndarray:
+        """`occluded` for float32 origins already in the recentred frame, on the calling thread.
+        Rays with tfar <= 0 are not traced (reported unoccluded)."""
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        if tfar is None:
+            return self._occluded(o, d)
+        return self._occluded(o, d, np.ascontiguousarray(tfar, dtype=np.float32))
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray):
         """First hits: (t (n,), face (n,) with -1 for a miss, barycentric u (n,), v (n,))."""
@@ -87,8 +92,8 @@ class EmbreeBackend(_Backend):
         face = np.asarray(res["primID"], dtype=np.int64)
         return np.asarray(res["tfar"], np.float64), face, np.asarray(res["u"], np.float64), np.asarray(res["v"], np.float64)
 
-    def _occluded(self, o, d):
-        return np.asarray(self._scene.run(o, d, query="OCCLUDED")) != MISS
+    def _occluded(self, o, d, tfar=None):
+        return np.asarray(self._scene.run(o, d, dists=tfar, query="OCCLUDED")) != MISS
 
 
 class ReferenceBackend(_Backend):
@@ -135,8 +140,14 @@ class ReferenceBackend(_Backend):
         t[f == MISS] = np.inf
         return t, f, u, v
 
-    def _occluded(self, o, d):
-        return self._hits(o, d)[1] != MISS
+    def _occluded(self, o, d, tfar=None):
+        if tfar is None:
+            return self._hits(o, d)[1] != MISS
+        out = np.zeros(len(o), dtype=bool)
+        live = tfar > 0
+        t, face, _, _ = self._hits(o[live], d[live])
+        out[live] = (face != MISS) & (t < tfar[live])
+        return out
 
 
 BACKENDS = {"embree": EmbreeBackend, "reference": ReferenceBackend}

@@ -32,28 +32,41 @@ def facing(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.maximum(normals.astype(np.float32) @ directions.astype(np.float32).T, 0.0)
 
 
+def castable(normals: np.ndarray, geometric_normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(P, N) bool: texels worth a shadow ray, in front of both the shading normal and the facet.
+
+    Light from behind the geometric facet cannot reach its front side (the facet itself is
+    opaque), so those texels are V = 0 without casting, for closed and open meshes alike.
+    """
+    d = directions.astype(np.float32).T
+    return ((normals.astype(np.float32) @ d) > 0) & ((geometric_normals.astype(np.float32) @ d) > 0)
+
+
 def _rows_kernel(backend, pos: np.ndarray, nrm: np.ndarray, geo: np.ndarray, dirs: np.ndarray,
                  sub: np.ndarray | None) -> np.ndarray:
-    """Visibility of a few pixels (float32 arrays in the backend's recentred frame)."""
-    front = (nrm @ dirs.T) > 0  # (p, N)
-    pj, ti = np.nonzero(front)
-    # Two candidate origins per pixel (pushed out along +/- the geometric normal); each ray takes
-    # the one on the side it leaves towards.
-    off = np.float32(backend.offset)
-    origins2 = np.stack([pos + off * geo, pos - off * geo], axis=1).reshape(-1, 3)
+    """Visibility of a few pixels (float32 arrays in the backend's recentred frame).
+
+    Every pixel gets one ray per texel (or sub-direction) laid out pixel-major, so building the
+    batch is a tile and a repeat rather than gathers; rays that need no cast get a negative
+    ray length, which Embree discards before traversal.
+    """
+    mask = castable(nrm, geo, dirs)  # (p, N)
+    origins = pos + np.float32(backend.offset) * geo  # off the surface, on the lit side
     if sub is None:
-        side = (geo @ dirs.T) < 0
-        d = dirs[ti]
-        visible = np.zeros(front.shape, dtype=bool)
-        visible[pj, ti] = ~backend.occluded_local(origins2[2 * pj + side[pj, ti]], d)
+        d = np.tile(dirs, (len(pos), 1))
+        o = np.repeat(origins, len(dirs), axis=0)
+        tfar = np.where(mask.ravel(), np.float32(np.inf), np.float32(-1.0))
+        visible = ~backend.occluded_local(o, d, tfar).reshape(mask.shape) & mask
         return np.packbits(visible, axis=1, bitorder="little")
     kk = sub.shape[1]
-    d = sub[ti].reshape(-1, 3)
-    pr = np.repeat(pj, kk)
-    side = np.einsum("rk,rk->r", geo[pr], d) < 0
-    counts = (~backend.occluded_local(origins2[2 * pr + side], d)).reshape(-1, kk).sum(axis=1)
-    frac = np.zeros(front.shape, dtype=np.uint8)
-    frac[pj, ti] = np.round(255.0 * counts / kk).astype(np.uint8)
+    d = np.tile(sub.reshape(-1, 3), (len(pos), 1))
+    o = np.repeat(origins, len(dirs) * kk, axis=0)
+    # a sub-direction behind the facet is blocked by the facet itself
+    sub_front = (np.einsum("pk,nsk->pns", geo, sub) > 0) & mask[:, :, None]
+    tfar = np.where(sub_front.ravel(), np.float32(np.inf), np.float32(-1.0))
+    visible = ~backend.occluded_local(o, d, tfar).reshape(sub_front.shape) & sub_front
+    frac = np.round(255.0 * visible.sum(axis=2) / kk).astype(np.uint8)
+    frac[~mask] = 0
     return frac
 
 
@@ -61,8 +74,9 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice, cube: CubeMap,
                     supersample: int = 1) -> np.ndarray:
     """Visibility of pixels `rows` against all texels, encoded for storage.
 
-    Rays of one pixel are cast together (coherent), only towards texels with N . d > 0; the pixels
-    are split over the backend's threads, each preparing and casting its own rays.
+    Rays of one pixel are cast together (coherent), only towards texels in front of the shading
+    normal and the facet (`castable`); the pixels are split over the backend's threads, each
+    preparing and casting its own rays.
 
     Returns
     -------

@@ -106,10 +106,15 @@ def test_sphere_lookup_finds_every_direction(R):
     assert np.all(cube.lookup(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])) >= 0)
 
 
-def test_zero_and_nan_directions_have_no_texel():
-    cube = CubeMap(4, False)
-    idx = cube.lookup(np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0]]))
-    assert idx[0] == -1 and idx[1] == -1
+@pytest.mark.parametrize("bad", [pytest.param([0.0, 0.0, 0.0], id="zero"),
+                                 pytest.param([np.nan, 0.0, 1.0], id="nan")])
+@pytest.mark.parametrize("hemisphere", MODES)
+def test_zero_and_nan_directions_have_no_texel(bad, hemisphere):
+    """lookup documents -1 where there is no texel; a degenerate direction has none."""
+    cube = CubeMap(4, hemisphere)
+    idx = cube.lookup(np.array([bad, [0.0, 0.0, 1.0]]))
+    assert idx[0] == -1
+    assert idx[1] == cube.lookup(np.array([0.0, 0.0, 1.0])) >= 0
 
 
 @pytest.mark.parametrize("R,hemisphere", [(2, True), (4, True), (8, False), (16, True)])

@@ -145,7 +145,8 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
             with atomic_output(chunk_path) as tmp:
                 with open(tmp, "wb") as f:
                     np.save(f, block, allow_pickle=False)
-            rays += int(np.count_nonzero(vis.facing(samples.normal[rows], cube.directions))) * opts.supersample**2
+            rays += int(np.count_nonzero(vis.castable(samples.normal[rows], samples.geometric_normal[rows],
+                                                      cube.directions))) * opts.supersample**2
             rate = rays / max(time.monotonic() - t_cast, 1e-9) / 1e6
             console.progress("visibility", i + 1, n_chunks, f"{rate:.1f} Mrays/s")
 
