@@ -17,8 +17,8 @@ from pipelines.errors import InputError
 from .cache import Decision, SceneCache, atomic_output
 from .scenefiles import SceneFiles
 
-VISIBILITY_VERSION = 1
-RENDER_VERSION = 1
+VISIBILITY_VERSION = 2
+RENDER_VERSION = 2
 CHUNK_PIXELS = 1024
 
 
@@ -33,6 +33,10 @@ class Console:
     def say(self, message: str) -> None:
         if not self.quiet:
             print(message, file=self.stream, flush=True)
+
+    def result(self, message: str) -> None:
+        """A result line: printed on stdout even with --quiet."""
+        print(message, file=sys.stdout, flush=True)
 
     def decision(self, d: Decision) -> None:
         self.say(f"{d.stage}: running ({d.reason})" if d.run else f"{d.stage}: skipped, {d.reason}")
@@ -164,7 +168,7 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
         shutil.rmtree(partial, ignore_errors=True)
         if partial_root.is_dir() and not any(partial_root.iterdir()):
             partial_root.rmdir()
-        console.say(f"visibility: done in {seconds:.1f} s ({rays / 1e6:.1f} M rays cast) -> {cache.relative(out)}")
+        console.result(f"visibility: done in {seconds:.1f} s ({rays / 1e6:.1f} M rays cast) -> {cache.relative(out)}")
     return d
 
 
@@ -271,6 +275,7 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
         outputs = [scene.out / "render.exr", scene.out / "render.png"]
         images.write_exr(outputs[0], img)
         images.write_png(outputs[1], img, exposure)
+        outputs += write_light(scene.out, "render_light", light, data.cube)
         summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
         if photo_path is not None:
             _, photo = load_photo(scene, camera)
@@ -281,14 +286,31 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
             summary.update({"relative_rmse_vs_photo": rel, "bias_vs_photo": float(values[ok].mean() / max(ref[ok].mean(), 1e-30) - 1)})
             heat = rd.pixels_to_image(np.abs(err).mean(axis=1), data.samples.pixel[ok], camera.height, camera.width)
             outputs.append(scene.out / "render_residual.png")
-            images.write_png(outputs[-1], heat_map(heat, scale=float(np.percentile(np.abs(ref[ok]).mean(axis=1), 95))),
-                             already_display=True)
-            console.say(f"render: relative RMSE vs {photo_path.name}: {100 * rel:.2f} % over {int(ok.sum())} pixels")
+            # white = an error of 10 % of the bright (95th percentile) radiance
+            scale = 0.1 * float(np.percentile(np.abs(ref[ok]).mean(axis=1), 95))
+            images.write_png(outputs[-1], heat_map(heat, scale), already_display=True)
+            console.result(f"render: relative RMSE vs {photo_path.name}: {100 * rel:.2f} % over {int(ok.sum())} pixels")
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, summary)
         for p in outputs:
             console.say(f"render: wrote {cache.relative(p)}")
     return d
+
+
+def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None) -> list[Path]:
+    """A cube-map light as <stem>_latlong.exr (exchange format), <stem>_cross.exr and a preview PNG
+    of the cross (texels outside the layout drawn dark grey)."""
+    from pipelines import cubemap, images
+
+    height = height or max(64, 2 * cube.resolution)
+    paths = [out_dir / f"{stem}_latlong.exr", out_dir / f"{stem}_cross.exr", out_dir / f"{stem}_cross.png"]
+    images.write_exr(paths[0], cubemap.cube_to_latlong(texels, cube, height))
+    cross, valid = cubemap.cross_image(texels, cube)
+    images.write_exr(paths[1], cross)
+    preview = images.tonemap(cross)
+    preview[~valid] = 0.15
+    images.write_png(paths[2], preview, already_display=True)
+    return paths
 
 
 def heat_map(values: np.ndarray, scale: float) -> np.ndarray:
