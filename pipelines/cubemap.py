@@ -17,6 +17,7 @@ faces join edge to edge in the horizontal-cross image (`cross_image`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache as functools_cache
 from functools import cached_property
 
 import numpy as np
@@ -166,32 +167,55 @@ class CubeMap:
                 for orow in offsets for ocol in offsets]
         return np.stack(dirs, axis=1)
 
+    def quadrature(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k x k sub-texel quadrature: directions (N, k*k, 3) float32 and exact solid angles
+        (N, k*k) float32 summing to each texel's solid angle."""
+        return self._quadrature(int(k))
+
+    @functools_cache
+    def _quadrature(self, k: int):
+        R = self.resolution
+        dirs = self.subtexel_directions(k).astype(np.float32)
+        offsets = np.arange(k) / k
+        weights = []
+        for orow in offsets:
+            for ocol in offsets:
+                s0 = -1.0 + 2.0 * (self.texel_col + ocol) / R
+                t0 = -1.0 + 2.0 * (self.texel_row + orow) / R
+                weights.append(face_rectangle_solid_angle(s0, s0 + 2.0 / (R * k), t0, t0 + 2.0 / (R * k)))
+        return dirs, np.stack(weights, axis=1).astype(np.float32)
+
     def lookup(self, directions: np.ndarray) -> np.ndarray:
-        """Texel index of each direction ((..., 3) array), -1 where the layout has no texel."""
+        """Texel index of each direction ((..., 3) array), -1 where the layout has no texel
+        (and for zero or non-finite directions)."""
         d = np.asarray(directions, dtype=np.float64)
         shape = d.shape[:-1]
-        d = d.reshape(-1, 3)
-        axis = np.argmax(np.abs(d), axis=1)
-        sign = np.sign(d[np.arange(len(d)), axis])
-        sign[sign == 0] = 1.0
-        # face index in FACE_NAMES from (axis, sign)
-        face_of = {(0, 1): "+x", (0, -1): "-x", (1, 1): "+y", (1, -1): "-y", (2, 1): "+z", (2, -1): "-z"}
-        table = np.zeros((3, 2), dtype=np.int64)
-        for (ax, sg), name in face_of.items():
-            table[ax, 0 if sg > 0 else 1] = FACE_NAMES.index(name)
-        faces = table[axis, (sign < 0).astype(int)]
-        frames = np.array([FACE_FRAMES[f] for f in FACE_NAMES], dtype=np.float64)
-        n, a, b = frames[faces, 0], frames[faces, 1], frames[faces, 2]
-        depth = np.einsum("ij,ij->i", d, n)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s = np.einsum("ij,ij->i", d, a) / depth
-            t = np.einsum("ij,ij->i", d, b) / depth
+        x, y, z = (d[..., i].ravel() for i in range(3))
+        ax, ay, az = np.abs(x), np.abs(y), np.abs(z)
+        # major axis -> face index (FACE_NAMES order) and the face's (s, t) numerators
+        is_x = (ax >= ay) & (ax >= az)
+        is_y = ~is_x & (ay >= az)
+        is_z = ~is_x & ~is_y
+        face = np.where(is_x, np.where(x >= 0, _FACE["+x"], _FACE["-x"]),
+                        np.where(is_y, np.where(y >= 0, _FACE["+y"], _FACE["-y"]),
+                                 np.where(z >= 0, _FACE["+z"], _FACE["-z"])))
+        depth = np.where(is_x, ax, np.where(is_y, ay, az))
+        num_s = _S_COEF[face, 0] * x + _S_COEF[face, 1] * y + _S_COEF[face, 2] * z
+        num_t = _T_COEF[face, 0] * x + _T_COEF[face, 1] * y + _T_COEF[face, 2] * z
+        bad = ~np.isfinite(depth + num_s + num_t) | (depth <= 0)
+        depth[bad] = 1.0
         R = self.resolution
-        col = np.clip(np.floor((s + 1.0) * 0.5 * R), 0, R - 1).astype(np.int64)
-        row = np.clip(np.floor((t + 1.0) * 0.5 * R), 0, R - 1).astype(np.int64)
-        idx = self._face_lookup[faces, row, col]
-        idx[~np.isfinite(depth) | (depth <= 0)] = -1
+        col = np.clip(np.floor((num_s / depth + 1.0) * (0.5 * R)), 0, R - 1)
+        row = np.clip(np.floor((num_t / depth + 1.0) * (0.5 * R)), 0, R - 1)
+        col[bad] = row[bad] = 0
+        idx = self._face_lookup[face, row.astype(np.int64), col.astype(np.int64)]
+        idx[bad] = -1
         return idx.reshape(shape)
+
+
+_FACE = {name: i for i, name in enumerate(FACE_NAMES)}
+_S_COEF = np.array([FACE_FRAMES[f][1] for f in FACE_NAMES], dtype=np.float64)  # column axis a
+_T_COEF = np.array([FACE_FRAMES[f][2] for f in FACE_NAMES], dtype=np.float64)  # row axis b
 
 
 # -- lat-long exchange format (DESIGN §2) ---------------------------------------------------------
@@ -224,41 +248,72 @@ def latlong_solid_angles(height: int, width: int | None = None) -> np.ndarray:
     return np.repeat((band * 2.0 * np.pi / width)[:, None], width, axis=1)
 
 
-def _supersampling(cube: CubeMap, height: int) -> int:
-    # Sub-cells must be well below a texel (corner texels are ~0.44x as wide as centre ones).
-    return int(max(2, np.ceil(8.0 * cube.resolution / height)))
+@functools_cache
+def latlong_overlap(height: int, cube: CubeMap):
+    """Sparse (H*2H, N) matrix of the solid angle each lat-long pixel shares with each texel.
+
+    Pixels are cut into cells no larger than about half a texel; a cell whose corners and centre
+    all fall in one texel goes to it whole; other cells are split in four until they are ~1/64 of
+    a texel (at least twice), and the last ones go by their centre. Cell areas are exact, so every
+    row sums to its pixel's solid angle exactly (in hemisphere mode, the part above the horizon);
+    column sums match the texel solid angles to ~0.7 % rms, 2 % at worst (cells that pass the
+    corner test but clip a texel boundary between their corners, and the last centre
+    assignments). The matrix is cached per (H, cube); building it takes ~1 s at R = 32 and tens
+    of seconds at R = 128.
+    """
+    from scipy import sparse
+
+    H, W = height, 2 * height
+    texel_angle = 0.5 * np.pi / cube.resolution  # at a face centre; corner texels are ~0.6x as wide
+    k = int(max(1, np.ceil(2.0 * (np.pi / H) / (0.6 * texel_angle))))
+    max_depth = int(max(2, np.ceil(np.log2((np.pi / (H * k)) / (texel_angle / 64.0)))))
+    rows, cols = np.meshgrid(np.arange(H * k), np.arange(W * k), indexing="ij")
+    theta0 = np.pi * rows.ravel() / (H * k)
+    phi0 = 2.0 * np.pi * cols.ravel() / (W * k)
+    pixel = (rows.ravel() // k) * W + cols.ravel() // k
+    dtheta, dphi = np.pi / (H * k), 2.0 * np.pi / (W * k)
+    corners = (1e-7, 1.0 - 1e-7)  # nudged inside the cell: poles, horizon and seams
+    out_p, out_t, out_w = [], [], []
+    for depth in range(max_depth + 1):
+        centre = cube.lookup(spherical_to_direction(theta0 + 0.5 * dtheta, phi0 + 0.5 * dphi))
+        same = np.ones(len(centre), dtype=bool)
+        if depth < max_depth:
+            for ft in corners:
+                for fp in corners:
+                    same &= cube.lookup(spherical_to_direction(theta0 + ft * dtheta, phi0 + fp * dphi)) == centre
+        area = dphi * (np.cos(theta0) - np.cos(theta0 + dtheta))
+        keep = same & (centre >= 0)
+        out_p.append(pixel[keep])
+        out_t.append(centre[keep])
+        out_w.append(area[keep])
+        split = ~same
+        if not split.any():
+            break
+        theta0, phi0, pixel = theta0[split], phi0[split], pixel[split]
+        dtheta, dphi = dtheta / 2, dphi / 2
+        theta0 = np.concatenate([theta0, theta0, theta0 + dtheta, theta0 + dtheta])
+        phi0 = np.concatenate([phi0, phi0 + dphi, phi0, phi0 + dphi])
+        pixel = np.tile(pixel, 4)
+    p, t, w = np.concatenate(out_p), np.concatenate(out_t), np.concatenate(out_w)
+    key = p * cube.n_texels + t  # merge the pieces of one (pixel, texel) pair
+    key, inverse = np.unique(key, return_inverse=True)
+    w = np.bincount(inverse, weights=w)
+    p, t = key // cube.n_texels, key % cube.n_texels
+    overlap = sparse.csr_matrix((w, (p, t)), shape=(H * W, cube.n_texels))
+    return overlap
 
 
-def _latlong_subcells(height: int, width: int, k: int, rows: slice):
-    """Directions (h, W, k*k, 3) and exact solid angles (h, W, k*k) of sub-cells of `rows`."""
-    r = np.arange(height)[rows]
-    sub = np.arange(k)
-    theta_edges = np.pi * (r[:, None] * k + np.arange(k + 1)[None, :]) / (height * k)  # (h, k+1)
-    band = np.cos(theta_edges[:, :-1]) - np.cos(theta_edges[:, 1:])  # (h, k)
-    theta_c = 0.5 * (theta_edges[:, :-1] + theta_edges[:, 1:])
-    phi_c = 2.0 * np.pi * (np.arange(width)[:, None] * k + sub[None, :] + 0.5) / (width * k)  # (W, k)
-    theta = np.broadcast_to(theta_c[:, None, :, None], (len(r), width, k, k))
-    phi = np.broadcast_to(phi_c[None, :, None, :], (len(r), width, k, k))
-    omega = np.broadcast_to(band[:, None, :, None] * (2.0 * np.pi / (width * k)), theta.shape)
-    dirs = spherical_to_direction(theta, phi).reshape(len(r), width, k * k, 3)
-    return dirs, omega.reshape(len(r), width, k * k)
-
-
-def latlong_to_cube(latlong: np.ndarray, cube: CubeMap, supersample: int | None = None) -> np.ndarray:
+def latlong_to_cube(latlong: np.ndarray, cube: CubeMap) -> np.ndarray:
     """Resample a lat-long radiance image onto the cube map, preserving power.
 
-    Each lat-long pixel is split into k x k sub-cells with exact solid angles; each sub-cell's power
-    (radiance x solid angle) goes to the texel its centre falls in, and texel radiance is the
-    collected power over the texel's solid angle. Total power is preserved exactly (in hemisphere
-    mode, power below the horizon is dropped), and a small bright source keeps its energy and lands
-    in the texel that contains it.
+    Texel radiance = (sum over lat-long pixels of radiance x overlap solid angle) / texel solid
+    angle (`latlong_overlap`). Total power is preserved exactly (in hemisphere mode, power below
+    the horizon is dropped), a small bright source keeps its energy and lands in the texel that
+    contains it, and a constant map stays constant to ~2 % (see `latlong_overlap`).
 
     Parameters
     ----------
-    latlong : (H, W) or (H, W, C) array
-    cube : CubeMap
-    supersample : int, optional
-        Sub-cells per pixel side; default is chosen from the resolutions.
+    latlong : (H, 2H) or (H, 2H, C) array
 
     Returns
     -------
@@ -268,31 +323,21 @@ def latlong_to_cube(latlong: np.ndarray, cube: CubeMap, supersample: int | None 
     squeeze = img.ndim == 2
     if squeeze:
         img = img[..., None]
-    if img.ndim != 3:
-        raise ValueError(f"lat-long image must have shape (H, W) or (H, W, C), got {latlong.shape}")
+    if img.ndim != 3 or img.shape[1] != 2 * img.shape[0]:
+        raise ValueError(f"lat-long image must have shape (H, 2H) or (H, 2H, C), got {latlong.shape}")
     H, W, C = img.shape
-    k = supersample or _supersampling(cube, H)
-    power = np.zeros((cube.n_texels, C))
-    rows_per_chunk = max(1, 2_000_000 // (W * k * k))
-    for start in range(0, H, rows_per_chunk):
-        rows = slice(start, min(H, start + rows_per_chunk))
-        dirs, omega = _latlong_subcells(H, W, k, rows)
-        idx = cube.lookup(dirs).ravel()
-        w = (omega[..., None] * img[rows, :, None, :]).reshape(-1, C)
-        keep = idx >= 0
-        for c in range(C):
-            power[:, c] += np.bincount(idx[keep], weights=w[keep, c], minlength=cube.n_texels)
+    overlap = latlong_overlap(H, cube)
+    power = overlap.T @ img.reshape(H * W, C)
     out = power / cube.solid_angles[:, None]
     return out[:, 0] if squeeze else out
 
 
-def cube_to_latlong(texels: np.ndarray, cube: CubeMap, height: int,
-                    supersample: int | None = None) -> np.ndarray:
+def cube_to_latlong(texels: np.ndarray, cube: CubeMap, height: int) -> np.ndarray:
     """Resample texel radiances to an (H, 2H[, C]) lat-long image, preserving power.
 
-    Each lat-long pixel is the solid-angle-weighted mean radiance of its k x k sub-cells, each
-    taking the radiance of the texel it falls in (zero where the layout has no texel), corrected
-    so that every texel hands out exactly its power (radiance x exact solid angle).
+    Pixel radiance = (sum over texels of radiance x overlap solid angle) / pixel solid angle, with
+    each texel's overlaps rescaled to its exact solid angle, so total power is exact and a
+    constant map stays constant to ~2 % (zero where the layout has no texel).
     """
     tex = np.asarray(texels, dtype=np.float64)
     squeeze = tex.ndim == 1
@@ -300,26 +345,13 @@ def cube_to_latlong(texels: np.ndarray, cube: CubeMap, height: int,
         tex = tex[:, None]
     if tex.shape[0] != cube.n_texels:
         raise ValueError(f"texels must have shape ({cube.n_texels}, C), got {texels.shape}")
-    H, W = height, 2 * height
-    k = supersample or _supersampling(cube, H)
-    rows_per_chunk = max(1, 2_000_000 // (W * k * k))
-    chunks = [slice(s, min(H, s + rows_per_chunk)) for s in range(0, H, rows_per_chunk)]
-    # Pass 1: the solid angle the sub-cells assign to each texel. Scaling texels by
-    # (exact / assigned) makes the resampling conserve power exactly, even for a one-texel sun.
-    assigned = np.zeros(cube.n_texels)
-    for rows in chunks:
-        dirs, omega = _latlong_subcells(H, W, k, rows)
-        idx = cube.lookup(dirs).ravel()
-        keep = idx >= 0
-        assigned += np.bincount(idx[keep], weights=omega.ravel()[keep], minlength=cube.n_texels)
+    overlap = latlong_overlap(height, cube)
+    assigned = np.asarray(overlap.sum(axis=0)).ravel()
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(assigned > 0, cube.solid_angles / assigned, 0.0)
-    tex0 = np.vstack([tex * scale[:, None], np.zeros((1, tex.shape[1]))])  # index -1 -> zero row
-    out = np.zeros((H, W, tex.shape[1]))
-    for rows in chunks:
-        dirs, omega = _latlong_subcells(H, W, k, rows)
-        idx = cube.lookup(dirs)
-        out[rows] = np.einsum("hwk,hwkc->hwc", omega, tex0[idx]) / omega.sum(axis=2)[..., None]
+    pix_omega = latlong_solid_angles(height).reshape(-1, 1)
+    out = (overlap @ (tex * scale[:, None])) / pix_omega
+    out = out.reshape(height, 2 * height, -1)
     return out[..., 0] if squeeze else out
 
 

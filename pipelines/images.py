@@ -59,11 +59,25 @@ def _open(path: Path):
 
     if not path.is_file():
         raise InputError("file not found", path, "check the path, or put the file in the scene folder")
-    buf = oiio.ImageBuf(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # keep colour as stored: alpha is dropped, not multiplied in
+    buf = oiio.ImageBuf(str(path), 0, 0, config)
     if buf.has_error:
-        raise InputError(f"cannot read image ({buf.geterror().splitlines()[0]})", path,
-                         "re-export it as EXR, PNG or JPEG")
+        detail = (buf.geterror().splitlines() or ["unknown format"])[0]
+        raise InputError(f"cannot read image ({detail})", path, "re-export it as EXR, PNG or JPEG")
+    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
+        raise InputError("JPEG file is truncated (no end-of-image marker)", path, "copy or export the photo again")
     return buf
+
+
+def _jpeg_complete(path: Path) -> bool:
+    # libjpeg pads a truncated stream with grey and reports nothing; the EOI marker tells.
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - 4096))
+        tail = f.read().rstrip(b"\x00")
+    return tail.endswith(b"\xff\xd9")
 
 
 def _pixels(buf, path: Path, fmt) -> np.ndarray:
@@ -71,7 +85,10 @@ def _pixels(buf, path: Path, fmt) -> np.ndarray:
 
     px = buf.get_pixels(fmt)
     if buf.has_error or px is None or np.size(px) == 0:
-        raise InputError("image data is truncated or corrupt", path, "re-export the image")
+        # geterror() also clears the error (else OpenImageIO prints it when the buffer dies)
+        detail = (buf.geterror().splitlines() or [""])[0]
+        raise InputError("image data is truncated or corrupt" + (f" ({detail})" if detail else ""), path,
+                         "re-export the image")
     px = np.asarray(px)
     if px.ndim == 2:
         px = px[..., None]

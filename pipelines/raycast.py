@@ -90,7 +90,9 @@ class EmbreeBackend(_Backend):
     def _intersect(self, o, d):
         res = self._scene.run(o, d, query="INTERSECT", output=1)
         face = np.asarray(res["primID"], dtype=np.int64)
-        return np.asarray(res["tfar"], np.float64), face, np.asarray(res["u"], np.float64), np.asarray(res["v"], np.float64)
+        t = np.asarray(res["tfar"], np.float64)
+        t[face == MISS] = np.inf  # Embree leaves its initial 1e37 on a miss
+        return t, face, np.asarray(res["u"], np.float64), np.asarray(res["v"], np.float64)
 
     def _occluded(self, o, d, tfar=None):
         return np.asarray(self._scene.run(o, d, dists=tfar, query="OCCLUDED")) != MISS
@@ -123,7 +125,7 @@ class ReferenceBackend(_Backend):
                 q = np.cross(s, e1[None])
                 v = np.einsum("rfk,rfk->rf", db, q) * inv
                 t = np.einsum("fk,rfk->rf", e2, q) * inv
-            ok = (np.abs(det) > eps) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+                ok = (np.abs(det) > eps) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
             t = np.where(ok, t, np.inf)
             f = np.argmin(t, axis=1)
             rows = np.arange(len(f))

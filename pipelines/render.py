@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .cubemap import CubeMap
 from .visibility import VisibilityData, facing
 
 SPECULAR_MODELS = ("blinn-phong", "phong", "phong-classic")
@@ -57,12 +58,21 @@ class Material:
         model = {"diffuse": "lambert", "lambertian": "lambert", "blinnphong": "blinn-phong",
                  "blinn_phong": "blinn-phong"}.get(kind, kind)
 
-        def rgb(v, default):
-            v = default if v is None else v
-            return tuple(float(x) for x in (np.broadcast_to(np.asarray(v, float), (3,))))
+        if not isinstance(data, dict):
+            raise ValueError(f"a material must be a JSON object, got {type(data).__name__}")
 
-        return cls(kd=rgb(data.get("kd"), 1.0), ks=rgb(data.get("ks"), 0.0),
-                   shininess=float(data.get("n", data.get("shininess", 1.0))), model=model)
+        def rgb(name, default):
+            v = data.get(name)
+            v = default if v is None else v
+            try:
+                return tuple(float(x) for x in (np.broadcast_to(np.asarray(v, float), (3,))))
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be a number or 3 numbers, got {v!r}") from None
+
+        n = data.get("n", data.get("shininess", 1.0))
+        if isinstance(n, bool) or not isinstance(n, (int, float)):
+            raise ValueError(f"n (shininess) must be a number, got {n!r}")
+        return cls(kd=rgb("kd", 1.0), ks=rgb("ks", 0.0), shininess=float(n), model=model)
 
     def to_json(self) -> dict:
         return {"model": self.model, "kd": list(self.kd), "ks": list(self.ks), "n": self.shininess,
@@ -81,33 +91,51 @@ def specular_lobe(normals: np.ndarray, views: np.ndarray, directions: np.ndarray
             c = (nv + normals.astype(np.float32) @ directions.astype(np.float32).T) / np.sqrt(
                 np.maximum(2.0 + 2.0 * vd, 1e-12))
         norm = (n + 8) / (8 * np.pi)
+    else:
+        r = 2.0 * np.einsum("pk,pk->p", normals, views)[:, None] * normals - views  # mirror of v
+        c = r.astype(np.float32) @ directions.astype(np.float32).T
+        norm = (n + 2) / (2 * np.pi) if model == "phong" else 1.0
     lobe = np.power(np.maximum(c, 0.0), n) * np.float32(norm)
     if model == "phong-classic":
         lobe = lobe / np.maximum(cosines, 1e-6)
     return np.where(cosines > 0, lobe, 0.0).astype(np.float32)
 
 
-def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, directions: np.ndarray,
-              solid_angles: np.ndarray, material: Material) -> tuple[np.ndarray, np.ndarray | None]:
-    """Transport blocks for a set of pixels.
+QUADRATURE = 2  # k x k sub-texel points integrate cosine and BRDF over each texel
+
+
+def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap, material: Material,
+              quadrature: int = QUADRATURE) -> tuple[np.ndarray, np.ndarray | None]:
+    """Transport blocks for a set of pixels: the light texels' contributions per unit radiance.
+
+    The radiance of a texel is constant over it (that is what a texel value means), so its
+    contribution is V x the integral over the texel of max(0, N.d) f(d, v); the integral uses a
+    k x k sub-texel rule with exact sub-texel solid angles (k = 1: texel centre only). Visibility
+    is per texel (V may be a supersampled fraction).
 
     Parameters
     ----------
     V : (P, N) float32 visibility in [0, 1].
     normals, views : (P, 3) shading normals and unit directions to the camera.
-    directions : (N, 3) texel directions; solid_angles : (N,).
+    cube : the texel layout.
 
     Returns
     -------
-    D : (P, N) float32, w_i V max(0, N.d) / pi (the diffuse transport for kd = 1);
+    D : (P, N) float32 diffuse transport for kd = 1 (the integral of cos / pi);
     S : (P, N) float32 specular transport for ks = 1, or None for a Lambertian material.
     """
-    cos = facing(normals, directions)
-    base = V * cos * solid_angles.astype(np.float32)[None, :]
-    D = base * np.float32(1.0 / np.pi)
-    if not material.specular:
-        return D, None
-    S = base * specular_lobe(normals, views, directions, cos, material.shininess, material.model)
+    sub_dirs, sub_omega = cube.quadrature(quadrature)
+    D = np.zeros(V.shape, dtype=np.float32)
+    S = np.zeros(V.shape, dtype=np.float32) if material.specular else None
+    for s in range(sub_dirs.shape[1]):
+        cos = facing(normals, sub_dirs[:, s])
+        weighted = cos * sub_omega[None, :, s]
+        D += weighted
+        if S is not None:
+            S += weighted * specular_lobe(normals, views, sub_dirs[:, s], cos, material.shininess, material.model)
+    D *= V * np.float32(1.0 / np.pi)
+    if S is not None:
+        S *= V
     return D, S
 
 
@@ -124,7 +152,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     Lf = L.astype(np.float32)
     s = vis.samples
     for sl, V in vis.blocks(rows):
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube.directions, vis.cube.solid_angles, material)
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
         out[sl] = kd * (D @ Lf)
         if S is not None:
             out[sl] += ks * (S @ Lf)

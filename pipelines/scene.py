@@ -212,7 +212,9 @@ def load_mesh(path: str | Path) -> Mesh:
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        # an ImportError here is trimesh reaching for an optional text-encoding detector on binary junk
+        msg = ("unrecognised content" if isinstance(exc, ImportError) or not str(exc)
+               else str(exc).splitlines()[0])
         raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -152,7 +151,3 @@ def baseline_scene(tmp_path_factory) -> Path:
         assert (scene / "out" / "render.exr").is_file()
         _BASELINE["scene"] = scene
     return _BASELINE["scene"]
-
-
-def environ() -> dict:
-    return dict(os.environ)

@@ -252,22 +252,25 @@ def test_one_texel_sun_keeps_its_power_in_latlong(hemisphere):
 @pytest.mark.parametrize("hemisphere", MODES)
 @pytest.mark.parametrize("R,H", [(8, 32), (16, 64), (32, 64)])
 def test_constant_cube_map_gives_constant_latlong(R, H, hemisphere):
-    """Radiance resampling must keep a uniform sky uniform (1 % allowed for sub-cell binning)."""
+    """Radiance resampling must keep a uniform sky uniform (2 % at worst, 0.7 % rms: the overlap
+    areas of boundary cells are approximate; total power is exact, see the energy tests)."""
     cube = CubeMap(R, hemisphere)
     img = cube_to_latlong(np.full(cube.n_texels, 2.0), cube, H)
     covered = img[: H // 2] if hemisphere else img
-    np.testing.assert_allclose(covered, 2.0, rtol=1e-2)
+    np.testing.assert_allclose(covered, 2.0, rtol=2e-2)
+    assert np.sqrt(np.mean((covered / 2.0 - 1.0) ** 2)) < 7e-3
     if hemisphere:
         assert np.all(img[H // 2:] == 0.0)
 
 
 @pytest.mark.parametrize("hemisphere", MODES)
-@pytest.mark.parametrize("R,H", [(8, 32), (16, 64), (32, 64)])
+@pytest.mark.parametrize("R,H", [(8, 32), (16, 64), (32, 64), (32, 512)])
 def test_constant_latlong_gives_constant_cube_map(R, H, hemisphere):
-    """A uniform lat-long sky must become a uniform cube map (1 % allowed for sub-cell binning)."""
+    """A uniform lat-long sky must become a uniform cube map (2 % at worst, 0.7 % rms)."""
     cube = CubeMap(R, hemisphere)
     tex = latlong_to_cube(np.full((H, 2 * H), 3.0), cube)
-    np.testing.assert_allclose(tex, 3.0, rtol=1e-2)
+    np.testing.assert_allclose(tex, 3.0, rtol=2e-2)
+    assert np.sqrt(np.mean((tex / 3.0 - 1.0) ** 2)) < 7e-3
 
 
 # -- cross image ---------------------------------------------------------------------------------

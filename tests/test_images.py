@@ -22,6 +22,7 @@ def write_raw(path, array, fmt_name):
     fmt = {"uint8": oiio.UINT8, "uint16": oiio.UINT16, "float": oiio.FLOAT, "half": oiio.HALF}[fmt_name]
     arr = np.ascontiguousarray(array)
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
+    spec.attribute("oiio:UnassociatedAlpha", 1)  # store colour as given (no un-premultiplying on write)
     out = oiio.ImageOutput.create(str(path))
     assert out is not None and out.open(str(path), spec)
     assert out.write_image(arr)

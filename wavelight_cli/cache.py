@@ -26,6 +26,7 @@ from pipelines.fileio import atomic_output
 CACHE_DIR = ".wavelight"
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 1
+_HELD: dict[str, int] = {}  # scene locks this process holds -> depth
 
 
 def file_digest(path: Path) -> str:
@@ -73,7 +74,9 @@ class SceneCache:
             return {"format": MANIFEST_FORMAT, "stages": {}}
         try:
             data = json.loads(self.manifest_path.read_text())
-            if data.get("format") != MANIFEST_FORMAT or not isinstance(data.get("stages"), dict):
+            if (not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT
+                    or not isinstance(data.get("stages"), dict)
+                    or not all(isinstance(r, dict) and isinstance(r.get("key"), str) for r in data["stages"].values())):
                 raise ValueError("unknown format")
             return data
         except (ValueError, UnicodeDecodeError):
@@ -84,10 +87,16 @@ class SceneCache:
         return self.manifest()["stages"].get(stage)
 
     def status(self) -> list[dict]:
-        """Every recorded stage checked against the current files: fresh or stale, and why."""
+        """Every recorded stage checked against the current files: fresh or stale, and why.
+        A stage whose upstream is stale is stale too (its next run will rerun it)."""
         stages = self.manifest()["stages"]
-        rows = []
-        for stage, rec in stages.items():
+        reasons: dict[str, str | None] = {}
+
+        def check(stage: str) -> str | None:
+            if stage in reasons:
+                return reasons[stage]
+            reasons[stage] = None  # guards against cycles in a hand-edited manifest
+            rec = stages[stage]
             reason = None
             for name, digest in rec.get("inputs", {}).items():
                 rel = rec.get("input_paths", {}).get(name)
@@ -97,12 +106,20 @@ class SceneCache:
                     reason = f"input changed: {name}"
                     break
             for up, key in rec.get("upstream", {}).items():
-                if reason is None and stages.get(up, {}).get("key") != key:
+                if reason is None and (up not in stages or stages[up]["key"] != key):
                     reason = f"upstream changed: {up}"
+                elif reason is None and check(up) is not None:
+                    reason = f"upstream stale: {up}"
             for rel, digest in rec.get("outputs", {}).items():
                 p = self.scene_dir / rel
                 if reason is None and (not p.is_file() or file_digest(p) != digest):
                     reason = f"output missing or damaged: {rel}"
+            reasons[stage] = reason
+            return reason
+
+        rows = []
+        for stage, rec in stages.items():
+            reason = check(stage)
             rows.append({"stage": stage, "state": "stale" if reason else "fresh", "reason": reason or "up to date",
                          "key": rec["key"][:12], "finished": rec.get("finished"), "seconds": rec.get("seconds"),
                          "params": rec.get("params"), "summary": rec.get("summary", {})})
@@ -179,9 +196,18 @@ class SceneCache:
     # -- locking --------------------------------------------------------------------------------
     @contextlib.contextmanager
     def lock(self, wait_seconds: float = 600.0, say=print):
-        """Exclusive per-scene lock: a second run waits for the first (or fails after a timeout)."""
+        """Exclusive per-scene lock: a second run waits for the first (or fails after a timeout).
+        Re-entrant within a process, so a stage can hold it across the upstream stages it runs."""
         self.dir.mkdir(parents=True, exist_ok=True)
         path = self.dir / "lock"
+        held = str(path.resolve())
+        if _HELD.get(held):
+            _HELD[held] += 1
+            try:
+                yield
+            finally:
+                _HELD[held] -= 1
+            return
         with open(path, "a+") as f:
             deadline = time.monotonic() + wait_seconds
             announced = False
@@ -204,6 +230,8 @@ class SceneCache:
                 f.truncate()
                 f.write(f"{os.getpid()}\n")
                 f.flush()
+                _HELD[held] = 1
                 yield
             finally:
+                _HELD.pop(held, None)
                 fcntl.flock(f, fcntl.LOCK_UN)

@@ -34,6 +34,21 @@ class WavelightGroup(click.Group):
             sys.exit(130)
 
 
+def _key_names(param: click.Parameter) -> list[str]:
+    """scene.toml keys for an option: its long option names without dashes (`ray-backend`), and
+    its Python name (`backend`), with - and _ alike."""
+    names = [o.lstrip("-") for o in param.opts if o.startswith("--")]
+    return names + [param.name]
+
+
+def _param_for_key(cmd: click.Command, key: str) -> click.Parameter | None:
+    norm = key.replace("_", "-")
+    for p in cmd.params:
+        if isinstance(p, click.Option) and norm in {n.replace("_", "-") for n in _key_names(p)}:
+            return p
+    return None
+
+
 def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
     path = scene_dir / "scene.toml"
     if not path.is_file():
@@ -53,10 +68,10 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
         for key, value in values.items():
             for name in commands:
                 cmd = group.commands[name]
-                param = next((p for p in cmd.params if p.name == key.replace("-", "_")), None)
+                param = _param_for_key(cmd, key)
                 if param is None:
                     if name == section:
-                        options = sorted(p.name for p in cmd.params if isinstance(p, click.Option))
+                        options = sorted(_key_names(p)[0] for p in cmd.params if isinstance(p, click.Option))
                         raise InputError(f"unknown key '{key}' in [{section}]", path,
                                          f"valid keys: {', '.join(options)}")
                     continue
@@ -152,11 +167,12 @@ def render_cmd(obj, light, material_file, model, kd, ks, shininess, exposure, fo
 
 
 @_command("check")
+@visibility_options
 @click.pass_obj
-def check_cmd(obj):
+def check_cmd(obj, **kw):
     """Validate the scene folder's files (nothing is written); one line per file."""
     scene = scene_folder(obj["scene"])
-    for line in stages.check_scene(scene):
+    for line in stages.check_scene(scene, _vis_opts(kw)):
         click.echo(line)
     click.echo(f"{scene.root}: ok")
 

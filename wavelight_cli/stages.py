@@ -172,7 +172,7 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
     return d
 
 
-def check_scene(scene: SceneFiles) -> list[str]:
+def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
     """Validate every file the scene folder has (without writing anything); return summary lines."""
     from pipelines import images
     from pipelines.scene import load_mesh, read_camera, read_correspondences, read_pose
@@ -203,7 +203,8 @@ def check_scene(scene: SceneFiles) -> list[str]:
         lines.append(f"mask.png: {int(mask.sum())} pixels")
     if scene.pose.is_file():
         read_pose(scene.pose)
-        *_, diag = _load_samples(scene, VisibilityOptions())
+        opts.check()
+        *_, diag = _load_samples(scene, opts)
         lines.append(f"pose.json: {diag['used']} used pixels of {diag['hit']} that see the mesh")
     else:
         lines.append("pose.json: none (run wavelight register)")
@@ -230,6 +231,9 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
             data = json.loads(Path(material_file).read_text())
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             raise InputError(f"cannot read material JSON ({exc})", material_file, "fix the file") from None
+        if not isinstance(data, dict):
+            raise InputError("a material must be a JSON object", material_file,
+                             'write e.g. {"model": "lambert", "kd": [0.8, 0.8, 0.8]}')
     if model is not None:
         data["model"] = model
         data.pop("type", None)
@@ -256,18 +260,18 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
 
     light_path = _require(Path(light_path), "light", "pass a lat-long EXR/HDR with --light")
     camera = read_camera(scene.camera)
-    photo_path = scene.image
-    vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
+    photo_path, photo = load_photo(scene, camera) if scene.image is not None else (None, None)
+    env = images.read_latlong(light_path)
     cache = SceneCache(scene.root)
-    params = {"material": material.to_json(), "exposure": exposure}
-    inputs = {"light": light_path, "photo": photo_path}
-    with cache.lock(lock_wait, console.say):
+    with cache.lock(lock_wait, console.say):  # one lock across visibility and render
+        vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
+        params = {"material": material.to_json(), "exposure": exposure}
+        inputs = {"light": light_path, "photo": photo_path}
         d = cache.plan("render", RENDER_VERSION, params, inputs, {"visibility": vdec.key}, force)
         console.decision(d)
         if not d.run:
             return d
         t0 = time.monotonic()
-        env = images.read_latlong(light_path)
         data = vis.read_visibility(cache.dir / "visibility.h5")
         light = cubemap.latlong_to_cube(env, data.cube)
         values = rd.render(data, light, material)
@@ -277,15 +281,17 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
         images.write_png(outputs[1], img, exposure)
         outputs += write_light(scene.out, "render_light", light, data.cube)
         summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
-        if photo_path is not None:
-            _, photo = load_photo(scene, camera)
+        residual_path = scene.out / "render_residual.png"
+        if photo is None and residual_path.exists():
+            residual_path.unlink()  # it belonged to a photo that is gone
+        if photo is not None:
             ref = photo.pixels[data.samples.pixel[:, 0], data.samples.pixel[:, 1]].astype(np.float64)
             ok = ~photo.saturated[data.samples.pixel[:, 0], data.samples.pixel[:, 1]]
             err = values[ok] - ref[ok]
             rel = float(np.sqrt(np.mean(err**2)) / max(np.sqrt(np.mean(ref[ok] ** 2)), 1e-30))
             summary.update({"relative_rmse_vs_photo": rel, "bias_vs_photo": float(values[ok].mean() / max(ref[ok].mean(), 1e-30) - 1)})
             heat = rd.pixels_to_image(np.abs(err).mean(axis=1), data.samples.pixel[ok], camera.height, camera.width)
-            outputs.append(scene.out / "render_residual.png")
+            outputs.append(residual_path)
             # white = an error of 10 % of the bright (95th percentile) radiance
             scale = 0.1 * float(np.percentile(np.abs(ref[ok]).mean(axis=1), 95))
             images.write_png(outputs[-1], heat_map(heat, scale), already_display=True)

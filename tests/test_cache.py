@@ -1,0 +1,414 @@
+"""The per-scene stage cache through the CLI (DESIGN §5): why a stage runs or is skipped, damaged
+outputs and manifests, status, resuming a killed run, and the per-scene lock."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import time
+
+import pytest
+
+from cli_helpers import (
+    RES,
+    baseline_scene,
+    copy_sample,
+    copy_scene,
+    decision_line,
+    h5_arrays,
+    invoke,
+    manifest,
+    ok,
+    render_args,
+    rotate_pose,
+    run_proc,
+    sha256,
+    snapshot,
+    wavelight_exe,
+)
+from wavelight_cli.stages import CHUNK_PIXELS
+
+VIS_H5 = ".wavelight/visibility.h5"
+
+
+@pytest.fixture(scope="module")
+def baseline(tmp_path_factory):
+    return baseline_scene(tmp_path_factory)
+
+
+@pytest.fixture
+def scene(baseline, tmp_path):
+    """A private copy of a scene whose visibility (R=8) and render are up to date."""
+    return copy_scene(baseline, tmp_path / "scene")
+
+
+@pytest.fixture(scope="module")
+def baseline_arrays(baseline):
+    return h5_arrays(baseline / VIS_H5)
+
+
+def _file_state(path):
+    return path.read_bytes(), path.stat().st_mtime_ns
+
+
+def _vis(scene, *extra):
+    return ok(invoke(scene, "visibility", "--resolution", RES, *extra))
+
+
+# -- runs and skips -----------------------------------------------------------------------------
+
+def test_first_run_runs_then_everything_skips(tmp_path):
+    scene = copy_sample(tmp_path / "scene")
+    err = _vis(scene)
+    assert decision_line(err, "visibility") == "visibility: running (no previous run)"
+    h5 = scene / VIS_H5
+    assert h5.is_file()
+    rec = manifest(scene)["stages"]["visibility"]
+    assert rec["params"]["resolution"] == 8
+    assert rec["outputs"] == {VIS_H5: sha256(h5)}
+    state = _file_state(h5)
+
+    err = _vis(scene)
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert _file_state(h5) == state
+    assert manifest(scene)["stages"]["visibility"] == rec
+
+    err = ok(invoke(scene, *render_args(scene)))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (no previous run)"
+    assert (scene / "out" / "render.exr").is_file() and (scene / "out" / "render.png").is_file()
+    assert _file_state(h5) == state
+    before = snapshot(scene)
+
+    err = ok(invoke(scene, *render_args(scene)))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render").startswith("render: skipped, up to date")
+    assert snapshot(scene) == before
+
+
+def test_pose_change_reruns_visibility_then_render(scene, baseline_arrays):
+    old = manifest(scene)["stages"]
+    rotate_pose(scene)
+    err = _vis(scene)
+    assert decision_line(err, "visibility") == "visibility: running (input changed: pose.json)"
+    new_vis = manifest(scene)["stages"]["visibility"]
+    assert new_vis["key"] != old["visibility"]["key"]
+    assert h5_arrays(scene / VIS_H5)["pixels/position"] != baseline_arrays["pixels/position"]
+
+    err = ok(invoke(scene, *render_args(scene)))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (upstream changed: visibility)"
+    assert manifest(scene)["stages"]["render"]["upstream"] == {"visibility": new_vis["key"]}
+
+
+def test_pose_change_then_render_reruns_both(scene):
+    rotate_pose(scene)
+    err = ok(invoke(scene, *render_args(scene)))
+    assert decision_line(err, "visibility") == "visibility: running (input changed: pose.json)"
+    assert decision_line(err, "render") == "render: running (upstream changed: visibility)"
+
+
+def test_render_only_option_reruns_render_only(scene):
+    h5 = _file_state(scene / VIS_H5)
+    err = ok(invoke(scene, *render_args(scene, "--exposure", "1")))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (params changed: exposure null -> 1.0)"
+    assert _file_state(scene / VIS_H5) == h5
+    assert manifest(scene)["stages"]["render"]["params"]["exposure"] == 1.0
+    err = ok(invoke(scene, *render_args(scene, "--exposure", "1")))
+    assert decision_line(err, "render").startswith("render: skipped, up to date")
+
+
+def test_material_change_reruns_render_only(scene):
+    err = ok(invoke(scene, "render", "--resolution", RES, "--light", scene / "truth" / "env_latlong.exr",
+                    "--kd", "0.5", "0.5", "0.5"))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render").startswith("render: running (params changed: material ")
+
+
+def test_resolution_change_reruns_visibility(scene):
+    err = ok(invoke(scene, "visibility", "--resolution", "16"))
+    assert decision_line(err, "visibility") == "visibility: running (params changed: resolution 8 -> 16)"
+    assert manifest(scene)["stages"]["visibility"]["params"]["resolution"] == 16
+    import h5py
+
+    with h5py.File(scene / VIS_H5, "r") as f:
+        assert int(f.attrs["resolution"]) == 16
+        assert int(f.attrs["n_texels"]) == 3 * 16 * 16
+    # the render made against R=8 is now out of date
+    err = ok(invoke(scene, *render_args(scene, res="16")))
+    assert decision_line(err, "render") == "render: running (upstream changed: visibility)"
+
+
+def test_force_reruns_and_gives_the_same_bits(scene, baseline_arrays):
+    err = _vis(scene, "--force")
+    assert decision_line(err, "visibility") == "visibility: running (--force)"
+    assert h5_arrays(scene / VIS_H5) == baseline_arrays
+    err = ok(invoke(scene, *render_args(scene, "--force")))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (--force)"
+
+
+def test_deleted_output_reruns_render(scene):
+    (scene / "out" / "render.png").unlink()
+    h5 = _file_state(scene / VIS_H5)
+    err = ok(invoke(scene, *render_args(scene)))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (output missing: out/render.png)"
+    assert (scene / "out" / "render.png").is_file()
+    assert _file_state(scene / VIS_H5) == h5
+    rec = manifest(scene)["stages"]["render"]
+    for rel, digest in rec["outputs"].items():
+        assert sha256(scene / rel) == digest
+
+
+def _overwrite_middle(path):
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 64] = bytes((b ^ 0x5A) for b in data[mid:mid + 64])
+    path.write_bytes(bytes(data))
+
+
+def _truncate(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+
+
+@pytest.mark.parametrize("damage", [_overwrite_middle, _truncate], ids=["overwrite-middle", "truncate"])
+@pytest.mark.parametrize("command", ["visibility", "render"])
+def test_damaged_visibility_file_is_detected_and_rebuilt(scene, baseline_arrays, damage, command):
+    h5 = scene / VIS_H5
+    recorded = manifest(scene)["stages"]["visibility"]["outputs"][VIS_H5]
+    damage(h5)
+    assert sha256(h5) != recorded
+
+    lines, rows = _status(scene)
+    assert rows["visibility"]["state"] == "stale"
+    assert rows["visibility"]["reason"] == f"output missing or damaged: {VIS_H5}"
+    assert lines["visibility"].split()[1] == "stale"
+
+    args = ["visibility", "--resolution", RES] if command == "visibility" else render_args(scene)
+    err = ok(invoke(scene, *args))
+    line = decision_line(err, "visibility")
+    assert line.startswith("visibility: running (")
+    assert "hash mismatch" in line and VIS_H5 in line
+    if command == "render":  # same visibility key, intact results: nothing to redo
+        assert decision_line(err, "render").startswith("render: skipped, up to date")
+    assert h5_arrays(h5) == baseline_arrays
+    assert sha256(h5) == manifest(scene)["stages"]["visibility"]["outputs"][VIS_H5]
+    err = _vis(scene)
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+
+
+@pytest.mark.parametrize("content, reason", [
+    pytest.param(b"\x00\xffgarbage\x89PNG\r\n" * 20, "manifest damaged, rebuilding", id="binary"),
+    pytest.param(b'{"format": 1, "stages": {"visibility": {"key": ', "manifest damaged, rebuilding",
+                 id="truncated-json"),
+    pytest.param(b"", "manifest damaged, rebuilding", id="empty"),
+    pytest.param(b'{"format": 99, "stages": {}}', "manifest damaged, rebuilding", id="unknown-format"),
+    pytest.param(b'{"format": 1, "stages": []}', "manifest damaged, rebuilding", id="stages-not-object"),
+    pytest.param(b"[1, 2, 3]", "manifest damaged, rebuilding", id="json-array"),
+    pytest.param(b"null", "manifest damaged, rebuilding", id="json-null"),
+    pytest.param(b'{"format": 1, "stages": {"visibility": 5}}', None, id="record-not-object"),
+])
+def test_garbage_manifest_means_rebuild_not_crash(scene, baseline_arrays, content, reason):
+    (scene / ".wavelight" / "manifest.json").write_bytes(content)
+    status = invoke(scene, "status", "--json")
+    ok(status)
+    assert all(r["state"] != "fresh" for r in json.loads(status.stdout))
+    err = _vis(scene)
+    line = decision_line(err, "visibility")
+    assert line.startswith("visibility: running (")
+    if reason is not None:
+        assert line == f"visibility: running ({reason})"
+    assert h5_arrays(scene / VIS_H5) == baseline_arrays
+    rec = manifest(scene)["stages"]["visibility"]
+    assert rec["outputs"] == {VIS_H5: sha256(scene / VIS_H5)}
+    err = _vis(scene)
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+
+
+# -- status -------------------------------------------------------------------------------------
+
+def _status(scene):
+    text = invoke(scene, "status")
+    ok(text)
+    js = invoke(scene, "status", "--json")
+    ok(js)
+    rows = {r["stage"]: r for r in json.loads(js.stdout)}
+    lines = {ln.split()[0]: ln for ln in text.stdout.splitlines()[1:] if ln.strip()}
+    return lines, rows
+
+
+def test_status_reports_fresh_then_stale_after_pose_change(scene):
+    lines, rows = _status(scene)
+    assert set(rows) == {"visibility", "render"} == set(lines)
+    for stage in rows:
+        assert rows[stage]["state"] == "fresh" and rows[stage]["reason"] == "up to date"
+        assert lines[stage].split()[1] == "fresh" and lines[stage].endswith("up to date")
+    assert rows["visibility"]["params"]["resolution"] == 8
+    assert rows["visibility"]["key"] == manifest(scene)["stages"]["visibility"]["key"][:12]
+
+    rotate_pose(scene)
+    lines, rows = _status(scene)
+    assert rows["visibility"]["state"] == "stale"
+    assert rows["visibility"]["reason"] == "input changed: pose.json"
+    assert lines["visibility"].split()[1] == "stale"
+    assert lines["visibility"].endswith("input changed: pose.json")
+
+    ok(invoke(scene, *render_args(scene)))
+    lines, rows = _status(scene)
+    assert {s: r["state"] for s, r in rows.items()} == {"visibility": "fresh", "render": "fresh"}
+
+
+def test_status_marks_downstream_of_a_stale_stage_stale(scene):
+    rotate_pose(scene)
+    lines, rows = _status(scene)
+    assert rows["render"]["state"] == "stale"
+    assert "visibility" in rows["render"]["reason"]
+    assert lines["render"].split()[1] == "stale"
+
+
+def test_status_without_any_run(tmp_path):
+    scene = copy_sample(tmp_path / "scene")
+    result = invoke(scene, "status")
+    ok(result)
+    assert "no stage has run" in result.stdout
+    js = invoke(scene, "status", "--json")
+    ok(js)
+    assert json.loads(js.stdout) == []
+
+
+# -- killed run, resume -------------------------------------------------------------------------
+
+KILL_ARGS = ["visibility", "--resolution", "32"]
+
+
+def test_killed_visibility_run_resumes_to_identical_bits(tmp_path):
+    killed = copy_sample(tmp_path / "killed")
+    reference = copy_sample(tmp_path / "reference")
+    exe = wavelight_exe()
+    # the uninterrupted reference runs meanwhile, in its own copy
+    with open(tmp_path / "ref.err", "w") as ref_err, open(tmp_path / "killed.err", "w") as kill_err:
+        ref = subprocess.Popen([exe, "-s", str(reference), *KILL_ARGS], stdout=subprocess.DEVNULL, stderr=ref_err)
+        proc = subprocess.Popen([exe, "-s", str(killed), *KILL_ARGS], stdout=subprocess.DEVNULL, stderr=kill_err)
+        try:
+            deadline = time.monotonic() + 240
+            chunks = []
+            while time.monotonic() < deadline:
+                chunks = list(killed.glob(".wavelight/partial/visibility-*/chunk_*.npy"))
+                if len(chunks) >= 2 or proc.poll() is not None:
+                    break
+                time.sleep(0.01)
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    log = (tmp_path / "killed.err").read_text()
+    assert len(chunks) >= 2, f"no chunks appeared before the deadline:\n{log}"
+    assert proc.returncode == -signal.SIGKILL, f"the run ended before it could be interrupted:\n{log}"
+
+    assert not (killed / VIS_H5).exists()
+    man = killed / ".wavelight" / "manifest.json"
+    assert not man.exists() or "visibility" not in manifest(killed)["stages"]
+    partial = list((killed / ".wavelight" / "partial").glob("visibility-*"))
+    assert len(partial) == 1
+    n_done = len(list(partial[0].glob("chunk_*.npy")))
+    assert n_done >= 2
+
+    result = run_proc(killed, *KILL_ARGS)
+    assert result.returncode == 0, result.stderr
+    assert decision_line(result.stderr, "visibility") == "visibility: running (no previous run)"
+    m = re.search(r"^visibility: resuming, (\d+)/(\d+) chunks already done$", result.stderr, re.M)
+    assert m, result.stderr
+    done, total = int(m.group(1)), int(m.group(2))
+    assert done == n_done
+    assert done < total, "the killed run had already finished every chunk: not an interruption"
+    assert "Traceback" not in result.stderr
+
+    assert ref.wait(timeout=600) == 0, (tmp_path / "ref.err").read_text()
+    resumed_arrays, ref_arrays = h5_arrays(killed / VIS_H5), h5_arrays(reference / VIS_H5)
+    assert set(resumed_arrays) == set(ref_arrays)
+    assert "visibility" in ref_arrays and "pixels/pixel" in ref_arrays
+    for name in ref_arrays:
+        assert resumed_arrays[name] == ref_arrays[name], f"{name} differs after resuming"
+    assert total == math.ceil(ref_arrays["pixels/pixel"][1][0] / CHUNK_PIXELS)
+
+    rec, ref_rec = manifest(killed)["stages"]["visibility"], manifest(reference)["stages"]["visibility"]
+    assert rec["key"] == ref_rec["key"]
+    assert rec["outputs"] == {VIS_H5: sha256(killed / VIS_H5)}
+    # the resumed run cast only the rays of the missing chunks
+    assert 0 < rec["summary"]["rays_cast_this_run"] < ref_rec["summary"]["rays_cast_this_run"]
+    assert not (killed / ".wavelight" / "partial").exists()
+    assert not [p for p in (killed / ".wavelight").iterdir() if p.name.endswith(".tmp.h5")]
+
+
+# -- concurrent runs ----------------------------------------------------------------------------
+
+def _start(exe, scene, args, log):
+    return subprocess.Popen([exe, "-s", str(scene), *map(str, args)], stdout=subprocess.DEVNULL, stderr=log)
+
+
+def test_two_concurrent_visibility_runs(tmp_path):
+    scene = copy_sample(tmp_path / "scene")
+    exe = wavelight_exe()
+    args = ["visibility", "--resolution", "16"]
+    logs = [tmp_path / "a.err", tmp_path / "b.err"]
+    with open(logs[0], "w") as la, open(logs[1], "w") as lb:
+        procs = [_start(exe, scene, args, la), _start(exe, scene, args, lb)]
+        codes = [p.wait(timeout=600) for p in procs]
+    errs = [p.read_text() for p in logs]
+    assert codes == [0, 0], errs
+    decisions = [decision_line(e, "visibility") for e in errs]
+    running = [i for i, d in enumerate(decisions) if d == "visibility: running (no previous run)"]
+    assert len(running) == 1, decisions
+    other = 1 - running[0]
+    assert decisions[other].startswith("visibility: skipped, up to date"), decisions
+    if "waiting: another wavelight run holds" in errs[other]:
+        lines = errs[other].splitlines()
+        waited = next(i for i, ln in enumerate(lines) if ln.startswith("waiting: another wavelight run holds"))
+        assert waited < lines.index(decisions[other])
+    for e in errs:
+        assert "Traceback" not in e and "Error" not in e
+
+    h5 = scene / VIS_H5
+    import h5py
+
+    with h5py.File(h5, "r") as f:
+        assert f.attrs["format"] == "wavelight-visibility-1"
+        assert int(f.attrs["resolution"]) == 16
+        n = int(f.attrs["n_pixels"])
+        assert f["visibility"].shape[0] == n == f["pixels/pixel"].shape[0] > 10_000
+    assert manifest(scene)["stages"]["visibility"]["outputs"] == {VIS_H5: sha256(h5)}
+    assert not (scene / ".wavelight" / "partial").exists()
+    js = invoke(scene, "status", "--json")
+    ok(js)
+    assert [(r["stage"], r["state"]) for r in json.loads(js.stdout)] == [("visibility", "fresh")]
+
+
+def test_concurrent_visibility_and_render(tmp_path):
+    scene = copy_sample(tmp_path / "scene")
+    exe = wavelight_exe()
+    logs = [tmp_path / "vis.err", tmp_path / "render.err"]
+    with open(logs[0], "w") as la, open(logs[1], "w") as lb:
+        procs = [_start(exe, scene, ["visibility", "--resolution", RES], la),
+                 _start(exe, scene, render_args(scene), lb)]
+        codes = [p.wait(timeout=600) for p in procs]
+    errs = [p.read_text() for p in logs]
+    assert codes == [0, 0], errs
+    vis_decisions = [decision_line(e, "visibility") for e in errs]
+    assert sum(d == "visibility: running (no previous run)" for d in vis_decisions) == 1, vis_decisions
+    assert sum(d.startswith("visibility: skipped, up to date") for d in vis_decisions) == 1, vis_decisions
+    assert decision_line(errs[1], "render") == "render: running (no previous run)"
+    stages = manifest(scene)["stages"]
+    assert stages["render"]["upstream"] == {"visibility": stages["visibility"]["key"]}
+    for stage in ("visibility", "render"):
+        for rel, digest in stages[stage]["outputs"].items():
+            assert sha256(scene / rel) == digest

@@ -1,0 +1,447 @@
+"""The `wavelight` command line: help, bad input (one clean `Error:` line, cache untouched),
+scene.toml defaults and `check`. Cache behaviour itself is in test_cache.py."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cli_helpers import (
+    RES,
+    baseline_scene,
+    copy_sample,
+    copy_scene,
+    decision_line,
+    invoke,
+    manifest,
+    ok,
+    render_args,
+    snapshot,
+    wavelight_exe,
+)
+from wavelight_cli.main import cli
+
+
+@pytest.fixture(scope="module")
+def baseline(tmp_path_factory):
+    return baseline_scene(tmp_path_factory)
+
+
+@pytest.fixture
+def scene(baseline, tmp_path):
+    """A private copy of the baseline scene (cache and results included)."""
+    return copy_scene(baseline, tmp_path / "scene")
+
+
+# -- help ---------------------------------------------------------------------------------------
+
+def test_group_help_lists_every_command():
+    for flag in ("--help", "-h"):
+        result = CliRunner().invoke(cli, [flag])
+        assert result.exit_code == 0, result.output
+        assert "Usage:" in result.stdout
+        for name in cli.commands:
+            assert name in result.stdout
+
+
+@pytest.mark.parametrize("name", sorted(cli.commands))
+def test_command_help(name):
+    result = CliRunner().invoke(cli, [name, "--help"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout.startswith("Usage:")
+    assert f" {name} " in result.stdout.splitlines()[0]
+    assert result.exception is None
+
+
+def test_help_as_a_real_process():
+    proc = subprocess.run([wavelight_exe(), "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "Usage:" in proc.stdout
+    assert "visibility" in proc.stdout
+    assert proc.stderr == ""
+
+
+# -- bad input ----------------------------------------------------------------------------------
+
+def _edit_json(name, change):
+    def mutate(scene):
+        path = scene / name
+        data = json.loads(path.read_text())
+        change(data)
+        path.write_text(json.dumps(data))
+    return mutate
+
+
+def _write(name, content):
+    def mutate(scene):
+        path = scene / name
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            path.write_text(content)
+    return mutate
+
+
+def _delete(*names):
+    def mutate(scene):
+        for n in names:
+            (scene / n).unlink()
+    return mutate
+
+
+def _truncate_half(name):
+    def mutate(scene):
+        data = (scene / name).read_bytes()
+        (scene / name).write_bytes(data[: len(data) // 2])
+    return mutate
+
+
+def _exr(name, shape, nan=False):
+    def mutate(scene):
+        from pipelines.images import write_exr
+
+        img = np.full(shape, 0.5, dtype=np.float32)
+        if nan:
+            img[5, 7, 1] = np.nan
+        write_exr(scene / name, img)
+    return mutate
+
+
+def _png(name, shape, value):
+    def mutate(scene):
+        from pipelines.images import write_png
+
+        write_png(scene / name, np.full(shape, float(value)), already_display=True)
+    return mutate
+
+
+def _pose_behind_camera(scene):
+    # R = identity, t = (0, 0, -10): z_cam = z - 10, and the mesh lies in 0 <= z <= 1.
+    verts = np.array([[float(x) for x in line.split()[1:4]]
+                      for line in (scene / "mesh.obj").read_text().splitlines() if line.startswith("v ")])
+    assert np.all(verts[:, 2] - 10.0 <= 0)
+    (scene / "pose.json").write_text(json.dumps({"R": np.eye(3).tolist(), "t": [0.0, 0.0, -10.0]}))
+
+
+def _pose_nan(scene):
+    (scene / "pose.json").write_text(
+        '{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0.0, 0.0, NaN]}')  # Python's json reads NaN
+
+
+def _mesh_nan(scene):
+    lines = (scene / "mesh.obj").read_text().splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("v "))
+    lines[i] = "v nan 0.1 0.2"
+    (scene / "mesh.obj").write_text("\n".join(lines) + "\n")
+
+
+def _csv_rows(n):
+    def mutate(scene):
+        lines = (scene / "correspondences.csv").read_text().splitlines()
+        (scene / "correspondences.csv").write_text("\n".join(lines[: n + 1]) + "\n")
+    return mutate
+
+
+def _csv_header(scene):
+    lines = (scene / "correspondences.csv").read_text().splitlines()
+    lines[0] = "x,y,z,u,v"
+    (scene / "correspondences.csv").write_text("\n".join(lines) + "\n")
+
+
+def _nothing(scene):
+    pass
+
+
+GARBAGE = np.random.default_rng(7).bytes(4096)
+VIS = lambda s: ["visibility", "--resolution", RES]  # noqa: E731
+CHECK = lambda s: ["check"]  # noqa: E731
+RENDER = lambda s: render_args(s)  # noqa: E731
+
+
+def _render_light(name):
+    return lambda s: ["render", "--resolution", RES, "--light", str(s / name)]
+
+
+def _render_material(name):
+    return lambda s: ["render", "--resolution", RES, "--light", str(s / "truth" / "env_latlong.exr"),
+                      "--material", str(s / name)]
+
+
+def _file(name):
+    return lambda s: str(s / name)
+
+
+def _text(text):
+    return lambda s: text
+
+
+
+# (id, mutate, command, culprit: what the one Error line must name)
+BAD_INPUT = [
+    ("camera-missing", _delete("camera.json"), VIS, _file("camera.json")),
+    ("camera-invalid-json", _write("camera.json", '{"width": 192, "height": '), VIS, _file("camera.json")),
+    ("camera-no-fx", _edit_json("camera.json", lambda d: d.pop("fx")), VIS, _file("camera.json")),
+    ("camera-fx-negative", _edit_json("camera.json", lambda d: d.update(fx=-1)), VIS, _file("camera.json")),
+    ("camera-fx-string", _edit_json("camera.json", lambda d: d.update(fx="abc")), VIS, _file("camera.json")),
+    ("camera-dist-3", _edit_json("camera.json", lambda d: d.update(dist=[0.1, 0.0, 0.0])), VIS,
+     _file("camera.json")),
+    ("camera-invalid-json-check", _write("camera.json", "not json"), CHECK, _file("camera.json")),
+    ("pose-missing", _delete("pose.json"), VIS, _file("pose.json")),
+    ("pose-R-shape", _edit_json("pose.json", lambda d: d.update(R=d["R"][:2])), VIS, _file("pose.json")),
+    ("pose-R-not-rotation", _edit_json("pose.json", lambda d: d.update(R=(1.1 * np.asarray(d["R"])).tolist())),
+     VIS, _file("pose.json")),
+    ("pose-R-reflection", _edit_json("pose.json", lambda d: d.update(R=(-np.asarray(d["R"])).tolist())),
+     VIS, _file("pose.json")),
+    ("pose-nan", _pose_nan, VIS, _file("pose.json")),
+    ("pose-behind-camera", _pose_behind_camera, VIS, _file("pose.json")),
+    ("pose-nan-check", _pose_nan, CHECK, _file("pose.json")),
+    ("mesh-missing", _delete("mesh.obj"), VIS, _file("mesh.obj")),
+    ("mesh-garbage", _write("mesh.obj", GARBAGE), VIS, _file("mesh.obj")),
+    ("mesh-nan", _mesh_nan, VIS, _file("mesh.obj")),
+    ("mesh-empty", _write("mesh.obj", ""), VIS, _file("mesh.obj")),
+    ("mesh-empty-check", _write("mesh.obj", ""), CHECK, _file("mesh.obj")),
+    ("image-garbage", _write("image.exr", GARBAGE), CHECK, _file("image.exr")),
+    ("image-truncated", _truncate_half("image.exr"), CHECK, _file("image.exr")),
+    ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, _file("image.exr")),
+    ("image-nan", _exr("image.exr", (144, 192, 3), nan=True), CHECK, _file("image.exr")),
+    ("mask-empty", _png("mask.png", (144, 192, 3), 0), VIS, _file("mask.png")),
+    ("mask-wrong-size", _png("mask.png", (100, 192, 3), 1), VIS, _file("mask.png")),
+    ("mask-empty-check", _png("mask.png", (144, 192, 3), 0), CHECK, _file("mask.png")),
+    ("mask-wrong-size-check", _png("mask.png", (144, 100, 3), 1), CHECK, _file("mask.png")),
+    ("mask-garbage", _write("mask.png", GARBAGE), VIS, _file("mask.png")),
+    ("light-missing", _nothing, _render_light("no_such_light.exr"), _file("no_such_light.exr")),
+    ("light-not-2to1", _exr("square_light.exr", (10, 10, 3)), _render_light("square_light.exr"),
+     _file("square_light.exr")),
+    ("light-garbage", _write("garbage_light.exr", GARBAGE), _render_light("garbage_light.exr"),
+     _file("garbage_light.exr")),
+    ("material-not-json", _write("mat.json", "{kd: 1"), _render_material("mat.json"), _file("mat.json")),
+    ("material-negative-kd", _write("mat.json", '{"model": "lambert", "kd": [-1, 0, 0]}'),
+     _render_material("mat.json"), _file("mat.json")),
+    ("material-json-array", _write("mat.json", "[0.8, 0.8, 0.8]"), _render_material("mat.json"), _file("mat.json")),
+    ("resolution-not-power-of-two", _nothing, lambda s: ["visibility", "--resolution", "12"], _text("--resolution")),
+    ("resolution-not-power-of-two-render", _nothing, lambda s: render_args(s, res="12"), _text("--resolution")),
+    ("supersample-zero", _nothing, lambda s: ["visibility", "--resolution", RES, "--supersample", "0"],
+     _text("--supersample")),
+    ("toml-unknown-section", _write("scene.toml", "[solver]\niterations = 3\n"), VIS, _file("scene.toml")),
+    ("toml-unknown-key", _write("scene.toml", "[visibility]\nresolutoin = 8\n"), VIS, _file("scene.toml")),
+    ("toml-wrong-type", _write("scene.toml", '[visibility]\nresolution = "big"\n'), VIS, _file("scene.toml")),
+    ("toml-bad-syntax", _write("scene.toml", "[visibility\nresolution = 8\n"), VIS, _file("scene.toml")),
+    ("toml-unknown-section-check", _write("scene.toml", "[solver]\niterations = 3\n"), CHECK,
+     _file("scene.toml")),
+    ("csv-bad-header", _csv_header, CHECK, _file("correspondences.csv")),
+    ("csv-three-rows", _csv_rows(3), CHECK, _file("correspondences.csv")),
+    ("csv-non-numeric", _write("correspondences.csv", "u,v,x,y,z\n1,2,3,4,five\n"), CHECK,
+     _file("correspondences.csv")),
+]
+
+
+def _params(cases):
+    out = []
+    for case in cases:
+        if hasattr(case, "marks"):  # a pytest.param (with marks): its first value is the id
+            out.append(pytest.param(*case.values[1:], id=case.values[0], marks=case.marks))
+        else:
+            out.append(pytest.param(*case[1:], id=case[0]))
+    return out
+
+
+def _assert_one_error_line(result, culprit: str, quiet: bool) -> str:
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    # Anything but SystemExit means an exception escaped the CLI (a traceback for a real user).
+    assert isinstance(result.exception, SystemExit), repr(result.exception)
+    assert "Traceback" not in result.output
+    err = result.stderr.splitlines()
+    errors = [ln for ln in err if ln.startswith("Error:")]
+    assert len(errors) == 1, result.stderr
+    line = errors[0]
+    assert err[-1] == line, f"the error must be the last line on stderr:\n{result.stderr}"
+    if quiet:
+        assert err == [line], f"with -q only the error line may be printed:\n{result.stderr}"
+        assert result.stdout == "", f"a failed run printed results:\n{result.stdout}"
+    else:  # the other lines are the stages' progress (`stage: ...`)
+        assert all(re.match(r"^[a-z]+: ", ln) for ln in err[:-1]), result.stderr
+    assert culprit in line, f"the error must name {culprit!r}: {line}"
+    assert "\n" not in line
+    return line
+
+
+@pytest.mark.parametrize("mutate, command, culprit", _params(BAD_INPUT))
+def test_bad_input_one_error_line_and_cache_untouched(scene, mutate, command, culprit):
+    before = snapshot(scene)
+    assert ".wavelight/visibility.h5" in before and "out/render.exr" in before
+    mutate(scene)
+    args = command(scene)
+    line = _assert_one_error_line(invoke(scene, *args), culprit(scene), quiet=False)
+    line_q = _assert_one_error_line(invoke(scene, *args, quiet=True), culprit(scene), quiet=True)
+    assert line == line_q
+    after = snapshot(scene)
+    assert sorted(after) == sorted(before)
+    for rel in before:
+        assert after[rel] == before[rel], f"{rel} was changed by a failed run"
+
+
+USAGE_ERRORS = [
+    ("resolution-not-int", ["visibility", "--resolution", "big"], "--resolution"),
+    ("unknown-backend", ["visibility", "--ray-backend", "optix"], "--ray-backend"),
+    ("unknown-option", ["visibility", "--resoltion", "8"], "--resoltion"),
+    ("render-without-light", ["render", "--resolution", RES], "--light"),
+    ("unknown-model", ["render", "--light", "x.exr", "--model", "cook-torrance"], "--model"),
+    ("unknown-command", ["solve-everything"], "solve-everything"),
+]
+
+
+@pytest.mark.parametrize("args, culprit", [pytest.param(a, c, id=i) for i, a, c in USAGE_ERRORS])
+def test_usage_errors_are_clicks_one_error_line(scene, args, culprit):
+    before = snapshot(scene)
+    result = invoke(scene, *args)
+    assert result.exit_code == 2, result.output
+    assert isinstance(result.exception, SystemExit)
+    assert "Traceback" not in result.output
+    errors = [ln for ln in result.stderr.splitlines() if ln.startswith("Error:")]
+    assert len(errors) == 1, result.stderr
+    assert culprit in errors[0]
+    assert snapshot(scene) == before
+
+
+SUBPROCESS_CASES = [
+    ("camera-invalid-json", _write("camera.json", "{"), VIS, "camera.json"),
+    ("mesh-garbage", _write("mesh.obj", GARBAGE), VIS, "mesh.obj"),
+    ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, "image.exr"),
+    ("image-truncated", _truncate_half("image.exr"), CHECK, "image.exr"),
+    ("toml-unknown-section", _write("scene.toml", "[solver]\nx = 1\n"), VIS, "scene.toml"),
+]
+
+
+@pytest.mark.parametrize("mutate, command, culprit", _params(SUBPROCESS_CASES))
+def test_bad_input_real_process_prints_exactly_one_line(scene, mutate, command, culprit):
+    """In a real process the output (including what C/C++ libraries print) is one line on stderr."""
+    before = snapshot(scene)
+    mutate(scene)
+    proc = subprocess.run([wavelight_exe(), "-q", "-s", str(scene), *command(scene)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert proc.stdout == "", f"unexpected output on stdout:\n{proc.stdout}"
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error:"), proc.stderr
+    assert str(scene / culprit) in lines[0]
+    assert snapshot(scene) == before
+
+
+def test_render_with_bad_photo_leaves_results_untouched(scene):
+    before = snapshot(scene)
+    _exr("image.exr", (10, 10, 3))(scene)
+    result = invoke(scene, *render_args(scene, "--exposure", "2"))
+    line = _assert_one_error_line(result, str(scene / "image.exr"), quiet=False)
+    assert "10x10" in line
+    after = snapshot(scene)
+    for rel in before:
+        assert after[rel] == before[rel], f"{rel} was changed by a failed run"
+
+
+def test_missing_photo_is_reported_by_check_and_render_still_works(scene):
+    (scene / "image.exr").unlink()
+    (scene / "image.png").unlink()
+    result = invoke(scene, "check")
+    ok(result)
+    assert "photo: none" in result.stdout
+    assert result.stdout.rstrip().endswith(": ok")
+    # render needs no photo (it then has nothing to compare against)
+    result = invoke(scene, *render_args(scene))
+    err = ok(result)
+    assert "visibility: skipped, up to date" in err
+    assert decision_line(err, "render").startswith("render: running (input changed: photo")
+    assert "relative RMSE" not in result.output
+    rec = manifest(scene)["stages"]["render"]
+    assert "relative_rmse_vs_photo" not in rec["summary"]
+    assert {"out/render.exr", "out/render.png"} <= set(rec["outputs"])
+    assert "out/render_residual.png" not in rec["outputs"]
+
+
+def test_lock_held_elsewhere_times_out_with_one_error_line(scene):
+    import fcntl
+
+    before = snapshot(scene)
+    with open(scene / ".wavelight" / "lock", "a+") as f:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        try:
+            result = invoke(scene, "--lock-wait", "0.3", "visibility", "--resolution", RES, "--force")
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+    line = _assert_one_error_line(result, str(scene / ".wavelight" / "lock"), quiet=False)
+    assert "lock" in line
+    assert "waiting: another wavelight run holds" in result.stderr
+    assert snapshot(scene) == before
+
+
+# -- scene.toml ---------------------------------------------------------------------------------
+
+def test_scene_toml_visibility_section_sets_defaults_of_visibility_and_render(tmp_path):
+    scene = copy_sample(tmp_path / "scene")
+    (scene / "scene.toml").write_text("[visibility]\nresolution = 8\n")
+    err = ok(invoke(scene, "visibility"))
+    assert "R=8" in err
+    vis = manifest(scene)["stages"]["visibility"]
+    assert vis["params"]["resolution"] == 8
+    import h5py
+
+    with h5py.File(scene / ".wavelight" / "visibility.h5", "r") as f:
+        assert int(f.attrs["resolution"]) == 8
+        assert int(f.attrs["n_texels"]) == 3 * 8 * 8
+    err = ok(invoke(scene, "render", "--light", scene / "truth" / "env_latlong.exr"))
+    # render used resolution 8 too: the visibility it needs is the one just made
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, "render") == "render: running (no previous run)"
+    m = manifest(scene)["stages"]
+    assert m["visibility"]["params"]["resolution"] == 8
+    assert m["render"]["upstream"] == {"visibility": m["visibility"]["key"]}
+    # an explicit option still wins over scene.toml
+    err = ok(invoke(scene, "visibility", "--resolution", "16"))
+    assert decision_line(err, "visibility") == "visibility: running (params changed: resolution 8 -> 16)"
+
+
+def test_scene_toml_accepts_cli_option_names(scene):
+    (scene / "scene.toml").write_text('[visibility]\nresolution = 8\nedge-margin = 1\nray-backend = "embree"\n')
+    result = invoke(scene, "status")
+    ok(result)
+    err = ok(invoke(scene, "visibility"))
+    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+
+
+# -- check --------------------------------------------------------------------------------------
+
+def test_check_sample_scene(baseline, tmp_path):
+    scene = copy_scene(baseline, tmp_path / "scene")
+    before = snapshot(scene)
+    result = invoke(scene, "check")
+    ok(result)
+    out = result.stdout
+    assert "camera.json: 192x144" in out
+    assert "image.exr: 192x144, float" in out
+    assert "correspondences.csv: 16 points" in out
+    assert re.search(r"mesh\.obj: \d+ vertices, \d+ faces", out)
+    m = re.search(r"pose\.json: (\d+) used pixels of (\d+) that see the mesh", out)
+    assert m, out
+    used, hit = int(m.group(1)), int(m.group(2))
+    assert 10_000 < used < hit < 192 * 144
+    # the count is the one the visibility stage uses (same default edge margin)
+    vis = manifest(scene)["stages"]["visibility"]["summary"]
+    assert (used, hit) == (vis["used"], vis["hit"])
+    assert out.rstrip().splitlines()[-1] == f"{scene}: ok"
+    assert snapshot(scene) == before  # check writes nothing
+
+
+@pytest.mark.parametrize("command", [["visibility", "--resolution", RES], ["check"], ["status"]])
+def test_missing_scene_folder(tmp_path, command):
+    missing = tmp_path / "no_such_scene"
+    result = invoke(missing, *command)
+    assert result.exit_code == 1, result.output
+    assert isinstance(result.exception, SystemExit)
+    assert result.stderr.splitlines() == [result.stderr.splitlines()[-1]]
+    assert result.stderr.startswith(f"Error: {missing}: scene folder not found")
+    assert not missing.exists()  # nothing was created
