@@ -1,0 +1,154 @@
+"""One pass over the used pixels -> the normal equations of the light solve.
+
+For the transport T (pixels x texels, `render.transport`) and the photo b (pixels x RGB), the
+solve needs only G = T'T (texels x texels) and h = T'b: every basis P then costs P'GP and P'h,
+and the residual of any light L is  |TL - b|^2 = L'GL - 2h'L + b'b,  with no second pass.
+Pixels are split into a fit set and a held-out set (for choosing the model size), each with its
+own (G, h, b'b). T never exists whole: blocks of pixel rows are built and folded in.
+
+Channels share G when the material's RGB kd and ks are proportional (the default white
+material): T_c = a_c T_0, so G_c = a_c^2 G_0 and h_c = a_c T_0'b_c. Otherwise each channel gets
+its own G.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import blas
+
+from .render import Material, transport
+from .visibility import VisibilityData
+
+
+@dataclass
+class SystemPart:
+    """Normal equations of one pixel set: for channel c, |T_c L - b_c|^2 = L'G_c L - 2 h_c'L + bb_c.
+
+    G: (N, N) shared by all channels up to a factor (G_c = channel_scale_c^2 G), or (C, N, N);
+    h: (N, C); bb: (C,).
+    """
+
+    G: np.ndarray
+    h: np.ndarray
+    bb: np.ndarray
+    n_pixels: int
+    channel_scale: np.ndarray | None = None
+
+    def gram(self, channel: int) -> np.ndarray:
+        if self.G.ndim == 3:
+            return self.G[channel]
+        a = 1.0 if self.channel_scale is None else float(self.channel_scale[channel])
+        return self.G if a == 1.0 else (a * a) * self.G
+
+    def residual(self, light: np.ndarray) -> np.ndarray:
+        """(C,) sum of squared residuals |T L_c - b_c|^2 of a light (N, C), from G alone."""
+        L = np.asarray(light, dtype=np.float64)
+        out = np.empty(L.shape[1])
+        for c in range(L.shape[1]):
+            out[c] = L[:, c] @ self.gram(c) @ L[:, c] - 2.0 * self.h[:, c] @ L[:, c] + self.bb[c]
+        return np.maximum(out, 0.0)
+
+    def relative_rmse(self, light: np.ndarray) -> float:
+        """sqrt(residual / b'b) over all channels (0 = perfect)."""
+        return float(np.sqrt(self.residual(light).sum() / max(self.bb.sum(), 1e-300)))
+
+
+@dataclass
+class NormalEquations:
+    fit: SystemPart
+    held_out: SystemPart
+    seconds: float
+
+    @property
+    def observability(self) -> np.ndarray:
+        """(N,) diag(G) of the fit set: the squared transport each texel gets from all pixels."""
+        G = self.fit.G if self.fit.G.ndim == 2 else self.fit.G.mean(axis=0)
+        return np.diag(G).copy()
+
+
+def holdout_mask(pixels: np.ndarray, fraction: float, seed: int = 0) -> np.ndarray:
+    """Deterministic, spatially scattered held-out pixels: a hash of (row, col) below `fraction`."""
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"held-out fraction must be in [0, 1), got {fraction}")
+    key = (pixels[:, 0].astype(np.uint64) * np.uint64(73856093)) ^ (pixels[:, 1].astype(np.uint64) * np.uint64(19349663))
+    key = (key + np.uint64(seed) * np.uint64(83492791)) * np.uint64(2654435761)
+    return ((key >> np.uint64(8)) % np.uint64(1 << 20)).astype(np.float64) / float(1 << 20) < fraction
+
+
+def _channel_scale(material: Material) -> np.ndarray | None:
+    kd, ks = np.asarray(material.kd), np.asarray(material.ks)
+    ref = int(np.argmax(kd + ks))
+    if kd[ref] + ks[ref] == 0:
+        return np.zeros(3)
+    a = (kd + ks) / (kd[ref] + ks[ref])
+    shared = np.allclose(kd, a * kd[ref], rtol=1e-9, atol=0) and (not material.specular or np.allclose(
+        ks, a * ks[ref], rtol=1e-9, atol=0))
+    return a if shared else None
+
+
+def _syrk_add(G: np.ndarray, T: np.ndarray) -> None:
+    # G += T'T on the upper triangle (float32 product, float64 accumulation across blocks)
+    G += blas.ssyrk(1.0, np.asfortranarray(T), trans=1, lower=0)
+
+
+def _symmetrise(G: np.ndarray) -> np.ndarray:
+    return np.triu(G) + np.triu(G, 1).T
+
+
+def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Material,
+                           use: np.ndarray | None = None, held_out: np.ndarray | None = None,
+                           rows: int = 2048, progress=None) -> NormalEquations:
+    """Accumulate G, h, b'b for the fit and held-out pixel sets.
+
+    Parameters
+    ----------
+    vis : visibility data of the used pixels.
+    photo : (P, 3) linear radiance of the used pixels (same order as vis.samples).
+    material : reflectance used to build the transport.
+    use : (P,) bool, pixels that may be fitted at all (e.g. not saturated); default all.
+    held_out : (P,) bool, pixels kept out of the fit for model selection; default none.
+    """
+    t0 = time.perf_counter()
+    b = np.asarray(photo, dtype=np.float64)
+    P = vis.n_pixels
+    if b.shape != (P, 3):
+        raise ValueError(f"photo values must have shape ({P}, 3), got {b.shape}")
+    use = np.ones(P, bool) if use is None else np.asarray(use, bool)
+    held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
+    N = vis.cube.n_texels
+    scale = _channel_scale(material)
+    kd, ks = np.asarray(material.kd, np.float32), np.asarray(material.ks, np.float32)
+    nG = 1 if scale is not None else 3
+    parts = {}
+    for name in ("fit", "held_out"):
+        parts[name] = {"G": np.zeros((nG, N, N)), "h": np.zeros((N, 3)), "bb": np.zeros(3), "n": 0}
+    s = vis.samples
+    ref = None if scale is None else int(np.argmax(kd + ks))
+    for sl, V in vis.blocks(rows):
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
+        bb = b[sl]
+        for name, sel in (("fit", use[sl] & ~held_out[sl]), ("held_out", use[sl] & held_out[sl])):
+            if not sel.any():
+                continue
+            part = parts[name]
+            part["n"] += int(sel.sum())
+            part["bb"] += (bb[sel] ** 2).sum(axis=0)
+            if scale is not None:
+                T = kd[ref] * D[sel] + (ks[ref] * S[sel] if S is not None else 0)
+                _syrk_add(part["G"][0], T)
+                part["h"] += (T.T.astype(np.float64) @ bb[sel]) * scale[None, :]  # T_c = a_c T_ref
+            else:
+                for c in range(3):
+                    T = kd[c] * D[sel] + (ks[c] * S[sel] if S is not None else 0)
+                    _syrk_add(part["G"][c], T)
+                    part["h"][:, c] += T.T.astype(np.float64) @ bb[sel, c]
+        if progress:
+            progress(sl.stop, P)
+    out = {}
+    for name, part in parts.items():
+        G = np.stack([_symmetrise(g) for g in part["G"]])
+        out[name] = SystemPart(G[0] if scale is not None else G, part["h"], part["bb"], part["n"], scale)
+    return NormalEquations(out["fit"], out["held_out"], time.perf_counter() - t0)
