@@ -167,6 +167,14 @@ class CubeMap:
                 for orow in offsets for ocol in offsets]
         return np.stack(dirs, axis=1)
 
+    @cached_property
+    def vector_solid_angles(self) -> np.ndarray:
+        """(N, 3) integral of the direction over each texel (a 16 x 16 sub-texel rule, ~1e-7
+        relative). For a normal N with N.d > 0 over the whole texel, N . m_i is exactly the
+        texel's projected solid angle, the integral of the cosine: the diffuse transport."""
+        dirs, weights = self._quadrature(16)
+        return np.einsum("nsk,ns->nk", dirs.astype(np.float64), weights.astype(np.float64))
+
     def quadrature(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k x k sub-texel quadrature: directions (N, k*k, 3) float32 and exact solid angles
         (N, k*k) float32 summing to each texel's solid angle."""

@@ -101,17 +101,17 @@ def specular_lobe(normals: np.ndarray, views: np.ndarray, directions: np.ndarray
     return np.where(cosines > 0, lobe, 0.0).astype(np.float32)
 
 
-QUADRATURE = 2  # k x k sub-texel points integrate cosine and BRDF over each texel
-
-
-def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap, material: Material,
-              quadrature: int = QUADRATURE) -> tuple[np.ndarray, np.ndarray | None]:
+def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
+              material: Material) -> tuple[np.ndarray, np.ndarray | None]:
     """Transport blocks for a set of pixels: the light texels' contributions per unit radiance.
 
     The radiance of a texel is constant over it (that is what a texel value means), so its
-    contribution is V x the integral over the texel of max(0, N.d) f(d, v); the integral uses a
-    k x k sub-texel rule with exact sub-texel solid angles (k = 1: texel centre only). Visibility
-    is per texel (V may be a supersampled fraction).
+    diffuse contribution is V x the integral over the texel of max(0, N.d) / pi. That integral is
+    N . m_i with m_i the texel's vector solid angle (`CubeMap.vector_solid_angles`), exact for
+    texels wholly above the shading horizon and clamped at 0 for the few that straddle it: as
+    cheap as a texel-centre rule and exact where the centre rule is off by O(1/R^2). The specular
+    lobe is evaluated at the texel centre (w_i max(0, N.d_i) f(d_i)). Visibility is per texel (V
+    may be a supersampled fraction).
 
     Parameters
     ----------
@@ -121,21 +121,16 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 
     Returns
     -------
-    D : (P, N) float32 diffuse transport for kd = 1 (the integral of cos / pi);
+    D : (P, N) float32 diffuse transport for kd = 1;
     S : (P, N) float32 specular transport for ks = 1, or None for a Lambertian material.
     """
-    sub_dirs, sub_omega = cube.quadrature(quadrature)
-    D = np.zeros(V.shape, dtype=np.float32)
-    S = np.zeros(V.shape, dtype=np.float32) if material.specular else None
-    for s in range(sub_dirs.shape[1]):
-        cos = facing(normals, sub_dirs[:, s])
-        weighted = cos * sub_omega[None, :, s]
-        D += weighted
-        if S is not None:
-            S += weighted * specular_lobe(normals, views, sub_dirs[:, s], cos, material.shininess, material.model)
+    D = facing(normals, cube.vector_solid_angles)
     D *= V * np.float32(1.0 / np.pi)
-    if S is not None:
-        S *= V
+    if not material.specular:
+        return D, None
+    cos = facing(normals, cube.directions)
+    S = V * cos * cube.solid_angles.astype(np.float32)[None, :]
+    S *= specular_lobe(normals, views, cube.directions, cos, material.shininess, material.model)
     return D, S
 
 

@@ -210,19 +210,25 @@ def load_mesh(path: str | Path) -> Mesh:
     if not path.is_file():
         raise InputError("file not found", path, "check the mesh path")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
         # an ImportError here is trimesh reaching for an optional text-encoding detector on binary junk
         msg = ("unrecognised content" if isinstance(exc, ImportError) or not str(exc)
                else str(exc).splitlines()[0])
         raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+    # A scene (multi-part file) becomes one mesh; each part keeps the normals its file gives
+    # (trimesh's force="mesh" would drop them and recompute normals from the faces).
+    parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
+        [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
+    parts = [m for m in parts if len(m.faces)]
+    if not parts:
         raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    faces = np.asarray(loaded.faces, dtype=np.int64)
+    vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64) for m in parts])
+    offsets = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
+    faces = np.concatenate([np.asarray(m.faces, dtype=np.int64) + o for m, o in zip(parts, offsets)])
     if not np.all(np.isfinite(vertices)):
         raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
-    normals = np.asarray(loaded.vertex_normals, dtype=np.float64)
+    normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
     notes = []
     v = vertices[faces]
     area2 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)

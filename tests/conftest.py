@@ -51,6 +51,7 @@ class ForwardRender:
     resolution: int
     step: int
     visibility: object
+    light: np.ndarray  # (N, 3) texel radiances of the true light
     rendered: np.ndarray  # (p, 3)
     reference: np.ndarray  # (p, 3)
     on_object: np.ndarray  # (p,)
@@ -60,6 +61,12 @@ class ForwardRender:
         ours, ref = (self.rendered, self.reference) if select is None else (
             self.rendered[select], self.reference[select])
         return float(np.sqrt(np.mean((ours - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
+
+    def render(self, material) -> np.ndarray:
+        """(p, 3) radiance of the same pixels and light with another material."""
+        from pipelines import render
+
+        return render.render(self.visibility, self.light, material)
 
     def brightness_ratio(self) -> float:
         """Mean of our radiance over the mean of Mitsuba's (1 = no bias)."""
@@ -131,7 +138,7 @@ def forward_render(mitsuba_scene):
             visibility = vis.compute_visibility(scene.backend, samples, cube)
             light = cubemap.latlong_to_cube(scene.light_latlong, cube)
             rendered = render.render(visibility, light, scene.material)
-            cache[key] = ForwardRender(scene, resolution, step, visibility, rendered,
+            cache[key] = ForwardRender(scene, resolution, step, visibility, light, rendered,
                                        scene.reference[::step], scene.on_object[::step])
         return cache[key]
 
