@@ -42,32 +42,24 @@ def castable(normals: np.ndarray, geometric_normals: np.ndarray, directions: np.
     return ((normals.astype(np.float32) @ d) > 0) & ((geometric_normals.astype(np.float32) @ d) > 0)
 
 
-def _rows_kernel(backend, pos: np.ndarray, nrm: np.ndarray, geo: np.ndarray, dirs: np.ndarray,
-                 sub: np.ndarray | None) -> np.ndarray:
-    """Visibility of a few pixels (float32 arrays in the backend's recentred frame).
+PIXELS_PER_CALL = 16  # pixels traced per Embree call: amortises the call, keeps batches small
 
-    Every pixel gets one ray per texel (or sub-direction) laid out pixel-major, so building the
-    batch is a tile and a repeat rather than gathers; rays that need no cast get a negative
-    ray length, which Embree discards before traversal.
+
+def _trace_rows(backend, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+    """Trace every (pixel, direction) pair of a few pixels -> (p, n) bool visible.
+
+    One call covers PIXELS_PER_CALL pixels: their rays are each pixel's origin repeated against the
+    same direction table (pixel-major: coherent), so a batch needs no gathers; rays with a
+    negative tfar are discarded by Embree before traversal.
     """
-    mask = castable(nrm, geo, dirs)  # (p, N)
-    origins = pos + np.float32(backend.offset) * geo  # off the surface, on the lit side
-    if sub is None:
-        d = np.tile(dirs, (len(pos), 1))
-        o = np.repeat(origins, len(dirs), axis=0)
-        tfar = np.where(mask.ravel(), np.float32(np.inf), np.float32(-1.0))
-        visible = ~backend.occluded_local(o, d, tfar).reshape(mask.shape) & mask
-        return np.packbits(visible, axis=1, bitorder="little")
-    kk = sub.shape[1]
-    d = np.tile(sub.reshape(-1, 3), (len(pos), 1))
-    o = np.repeat(origins, len(dirs) * kk, axis=0)
-    # a sub-direction behind the facet is blocked by the facet itself
-    sub_front = (np.einsum("pk,nsk->pns", geo, sub) > 0) & mask[:, :, None]
-    tfar = np.where(sub_front.ravel(), np.float32(np.inf), np.float32(-1.0))
-    visible = ~backend.occluded_local(o, d, tfar).reshape(sub_front.shape) & sub_front
-    frac = np.round(255.0 * visible.sum(axis=2) / kk).astype(np.uint8)
-    frac[~mask] = 0
-    return frac
+    n = len(directions)
+    table = np.tile(directions, (PIXELS_PER_CALL, 1))
+    out = np.empty(tfar.shape, dtype=bool)
+    for j in range(0, len(origins), PIXELS_PER_CALL):
+        k = min(PIXELS_PER_CALL, len(origins) - j)
+        o = np.repeat(origins[j:j + k], n, axis=0)
+        out[j:j + k] = ~backend.occluded_local(o, table[:k * n], tfar[j:j + k].ravel()).reshape(k, n)
+    return out
 
 
 def visibility_rows(backend, samples: PixelSamples, rows: slice, cube: CubeMap,
@@ -75,8 +67,7 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice, cube: CubeMap,
     """Visibility of pixels `rows` against all texels, encoded for storage.
 
     Rays of one pixel are cast together (coherent), only towards texels in front of the shading
-    normal and the facet (`castable`); the pixels are split over the backend's threads, each
-    preparing and casting its own rays.
+    normal and the facet (`castable`); the pixels are split over the backend's threads.
 
     Returns
     -------
@@ -85,18 +76,34 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice, cube: CubeMap,
     from concurrent.futures import ThreadPoolExecutor
 
     pos = backend.to_local(samples.position[rows])
-    nrm = samples.normal[rows].astype(np.float32)
     geo = samples.geometric_normal[rows].astype(np.float32)
     dirs = cube.directions.astype(np.float32)
-    sub = cube.subtexel_directions(supersample).astype(np.float32) if supersample > 1 else None
+    mask = castable(samples.normal[rows], geo, dirs)  # (p, N)
+    origins = pos + np.float32(backend.offset) * geo  # off the surface, on the lit side
+    if supersample == 1:
+        table, tfar = dirs, np.where(mask, np.float32(np.inf), np.float32(-1.0))
+    else:
+        sub = cube.subtexel_directions(supersample).astype(np.float32)  # (N, k*k, 3)
+        # a sub-direction behind the facet is blocked by the facet itself
+        live = (np.einsum("pk,nsk->pns", geo, sub) > 0) & mask[:, :, None]
+        table = sub.reshape(-1, 3)
+        tfar = np.where(live, np.float32(np.inf), np.float32(-1.0)).reshape(len(pos), -1)
     n = len(pos)
     bounds = np.linspace(0, n, min(backend.threads, max(1, n)) + 1).astype(int)
     parts = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     if len(parts) == 1:
-        return _rows_kernel(backend, pos, nrm, geo, dirs, sub)
-    with ThreadPoolExecutor(len(parts)) as pool:
-        out = list(pool.map(lambda sl: _rows_kernel(backend, pos[sl], nrm[sl], geo[sl], dirs, sub), parts))
-    return np.concatenate(out, axis=0)
+        visible = _trace_rows(backend, origins, table, tfar)
+    else:
+        with ThreadPoolExecutor(len(parts)) as pool:
+            visible = np.concatenate(list(pool.map(
+                lambda sl: _trace_rows(backend, origins[sl], table, tfar[sl]), parts)))
+    if supersample == 1:
+        return np.packbits(visible & mask, axis=1, bitorder="little")
+    kk = supersample**2
+    counts = (visible & (tfar > 0)).reshape(n, -1, kk).sum(axis=2)
+    frac = np.round(255.0 * counts / kk).astype(np.uint8)
+    frac[~mask] = 0
+    return frac
 
 
 def decode(block: np.ndarray, n_texels: int, encoding: str) -> np.ndarray:
