@@ -143,3 +143,19 @@ def forward_render(mitsuba_scene):
         return cache[key]
 
     return get
+
+
+@pytest.fixture(scope="module")
+def baseline(tmp_path_factory):
+    """The sample scene with visibility (R=8) and a render up to date (built once per module)."""
+    from cli_helpers import baseline_scene
+
+    return baseline_scene(tmp_path_factory)
+
+
+@pytest.fixture
+def scene(baseline, tmp_path):
+    """A private copy of the baseline scene (cache and results included)."""
+    from cli_helpers import copy_scene
+
+    return copy_scene(baseline, tmp_path / "scene")

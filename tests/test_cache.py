@@ -15,9 +15,7 @@ import pytest
 
 from cli_helpers import (
     RES,
-    baseline_scene,
     copy_sample,
-    copy_scene,
     decision_line,
     h5_arrays,
     invoke,
@@ -35,15 +33,6 @@ from wavelight_cli.stages import CHUNK_PIXELS
 VIS_H5 = ".wavelight/visibility.h5"
 
 
-@pytest.fixture(scope="module")
-def baseline(tmp_path_factory):
-    return baseline_scene(tmp_path_factory)
-
-
-@pytest.fixture
-def scene(baseline, tmp_path):
-    """A private copy of a scene whose visibility (R=8) and render are up to date."""
-    return copy_scene(baseline, tmp_path / "scene")
 
 
 @pytest.fixture(scope="module")

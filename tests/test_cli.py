@@ -13,7 +13,6 @@ from click.testing import CliRunner
 
 from cli_helpers import (
     RES,
-    baseline_scene,
     copy_sample,
     copy_scene,
     decision_line,
@@ -27,15 +26,6 @@ from cli_helpers import (
 from wavelight_cli.main import cli
 
 
-@pytest.fixture(scope="module")
-def baseline(tmp_path_factory):
-    return baseline_scene(tmp_path_factory)
-
-
-@pytest.fixture
-def scene(baseline, tmp_path):
-    """A private copy of the baseline scene (cache and results included)."""
-    return copy_scene(baseline, tmp_path / "scene")
 
 
 # -- help ---------------------------------------------------------------------------------------
