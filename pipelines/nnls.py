@@ -1,15 +1,19 @@
 """Non-negative least squares on the normal equations: min_x 1/2 x'Gx - h'x  subject to  x >= 0.
 
 The light solve never builds the tall transport matrix T; it works on G = T'T and h = T'b.
-`nnls_gram` is a block principal pivoting active-set method (Kim & Park, SIAM J. Sci. Comput. 33,
-2011): each iteration exchanges every variable that violates the KKT conditions between the free
-and the bound set, with the classic backup rule (exchange only the worst one) when the number of
-violations stops falling, which guarantees termination. Each iteration solves the free block by a
-Cholesky factorisation.
+`nnls_gram` is a feasible active-set method in the spirit of Lawson & Hanson, with block steps:
+each outer iteration lets the most violating variables (up to half the free set's size) join the
+free set, then the inner loop walks from the current feasible point towards the optimum on the
+free set, dropping variables as they reach zero, until that optimum is feasible. The objective
+never increases; when an iteration makes no progress only one variable enters at a time, which is
+classic Lawson-Hanson and terminates. A warm start (the positive set of a coarser level) makes
+most solves take a few iterations. Each free block is factored by pivoted Cholesky, and columns
+numerically dependent on the others are held at zero (a basic solution): near-duplicate texels
+never make a block singular.
 
-It must never fail: columns no pixel constrains are fixed at zero up front; a free block that is
-not numerically positive definite is solved with a small ridge (reported); if the pivoting does
-not converge within its budget, projected gradient iterations finish the job. Every solve returns
+It must never fail: columns no pixel constrains are fixed at zero up front; a ridge is used only
+if LAPACK cannot factor a block (reported); if the iterations exceed their budget, projected
+gradient iterations finish the job. Every solve returns
 diagnostics: KKT residual, free/bound counts, ridge, the Cholesky pivot ratio of the free block
 (a cheap stand-in for its reciprocal condition number), iterations and time.
 """
@@ -21,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import linalg
+from scipy.linalg import lapack
 
 
 @dataclass
@@ -44,22 +49,43 @@ class NNLSResult:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items() if k != "x"}
 
 
-def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float):
-    """x_F = (G_FF + ridge I)^-1 h_F, trying ridge = 0 first; returns (x_F, ridge used, pivot ratio)."""
+def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float, rank_tol: float = 1e-11):
+    """x_F = G_FF^-1 h_F on a linearly independent subset of F.
+
+    A pivoted Cholesky factorisation (LAPACK ?pstrf) finds the columns of the free block that are
+    numerically dependent on the others (pivot < rank_tol x the largest diagonal): they are held at
+    zero, which loses nothing (the others span them) and keeps every solve well posed, as
+    Lawson-Hanson's basic solutions are. Returns (x_F, dropped (bool over F), ridge, pivot ratio).
+    A ridge is only used if LAPACK itself fails.
+    """
     GFF = G[np.ix_(F, F)]
-    scale = float(np.mean(np.diag(GFF))) if len(F) else 1.0
-    for ridge in (0.0, ridge0, 1e3 * ridge0, 1e6 * ridge0):
+    n = len(F)
+    dropped = np.zeros(n, dtype=bool)
+    dmax = float(np.max(np.diag(GFF), initial=0.0))
+    if n == 0 or dmax <= 0:
+        return np.zeros(n), ~dropped, 0.0, float("nan")
+    U, piv, rank, info = lapack.dpstrf(GFF, tol=rank_tol * dmax, lower=0)
+    if info >= 0 and rank > 0:
+        order = piv[:rank] - 1  # LAPACK pivots are 1-based
+        Ur = np.triu(U[:rank, :rank])
+        z = linalg.solve_triangular(Ur, h[F][order], trans="T", check_finite=False)
+        z = linalg.solve_triangular(Ur, z, check_finite=False)
+        x = np.zeros(n)
+        x[order] = z
+        dropped[:] = True
+        dropped[order] = False
+        d = np.abs(np.diag(Ur))
+        return x, dropped, 0.0, float((d.min() / d.max()) ** 2)
+    scale = float(np.mean(np.diag(GFF)))
+    for ridge in (ridge0, 1e3 * ridge0, 1e6 * ridge0):
         try:
-            c = linalg.cho_factor(GFF + ridge * scale * np.eye(len(F)), lower=True, check_finite=False)
+            c = linalg.cho_factor(GFF + ridge * scale * np.eye(n), lower=True, check_finite=False)
         except linalg.LinAlgError:
             continue
-        # Cholesky can "succeed" on a matrix that is singular to working precision; the pivots tell.
-        piv = np.abs(np.diag(c[0]))
-        if ridge == 0.0 and piv.min() <= 1e-7 * piv.max():
-            continue
-        return linalg.cho_solve(c, h[F], check_finite=False), ridge * scale, float((piv.min() / piv.max()) ** 2)
+        d = np.abs(np.diag(c[0]))
+        return linalg.cho_solve(c, h[F], check_finite=False), dropped, ridge * scale, float((d.min() / d.max()) ** 2)
     # pathological: fall back to a least-squares solve of the block
-    return np.linalg.lstsq(GFF, h[F], rcond=None)[0], float("inf"), 0.0
+    return np.linalg.lstsq(GFF, h[F], rcond=None)[0], dropped, float("inf"), 0.0
 
 
 def _projected_gradient(G, h, x, iterations=500):
@@ -77,16 +103,21 @@ def _projected_gradient(G, h, x, iterations=500):
 
 
 def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, ridge: float = 1e-10,
-              unconstrained_tol: float = 1e-12) -> NNLSResult:
+              unconstrained_tol: float = 1e-12, initial_free: np.ndarray | None = None,
+              max_enter: int | None = None, trace=None) -> NNLSResult:
     """Solve min 1/2 x'Gx - h'x s.t. x >= 0 for one right-hand side.
 
     Parameters
     ----------
     G : (n, n) symmetric positive semi-definite (float64).
     h : (n,) right-hand side.
-    max_iterations : pivoting budget (default 5 n + 50) before projected gradient takes over.
-    ridge : relative ridge (x mean diagonal) tried when a free block is singular.
+    max_iterations : budget of outer iterations (default 5 n + 50) before projected gradient takes over.
+    ridge : relative ridge (x mean diagonal), only if LAPACK cannot factor a free block.
     unconstrained_tol : columns with G_ii <= tol * max G_ii are unconstrained by the data and fixed at 0.
+    initial_free : (n,) bool, a guess of the positive variables (warm start, e.g. from a coarser level).
+    max_enter : at most this many variables join the free set per outer iteration (the most
+        violating, by gradient / sqrt(G_ii)); default max(16, half the free count).
+    trace : optional callable(iteration, n_free, n_violators, objective), called every outer iteration.
 
     Returns
     -------
@@ -98,7 +129,7 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
     n = len(h)
     if G.shape != (n, n):
         raise ValueError(f"G must have shape ({n}, {n}), got {G.shape}")
-    if not (np.all(np.isfinite(G)) and np.all(np.isfinite(h))):
+    if not (np.all(np.isfinite(h)) and np.isfinite(G).all()):
         raise ValueError("G and h must be finite")
     diag = np.diag(G).copy()
     live = diag > unconstrained_tol * max(float(diag.max(initial=0.0)), 1e-300)
@@ -108,48 +139,89 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
         return NNLSResult(x, 0.0, 0, n - int((~live).sum()), int((~live).sum()), 0.0, float("nan"), 0,
                           time.perf_counter() - t0, objective=0.0)
     idx = np.flatnonzero(live)
-    Gl, hl = G[np.ix_(idx, idx)], h[idx]
+    Gl = G if len(idx) == n else G[np.ix_(idx, idx)]  # no copy of a large G when every column is live
+    hl = h[idx]
     m = len(idx)
-    tol = 1e-12 * hscale
-    free = np.zeros(m, dtype=bool)
+    tol = 1e-10 * hscale
+    inv_norm = 1.0 / np.sqrt(diag[idx])
+    free = np.zeros(m, dtype=bool) if initial_free is None else np.asarray(initial_free, bool)[idx].copy()
     xl = np.zeros(m)
-    y = -hl.copy()
     budget = max_iterations if max_iterations is not None else 5 * m + 50
-    best_violations, backup = m + 1, 3
     ridge_used, iterations, fallback, pivot_ratio = 0.0, 0, False, float("nan")
+    # a warm start is pruned first, all negatives at once, until the optimum on it is positive:
+    # from there the monotone iterations below start at a feasible point near the solution
+    for _ in range(50):
+        F = np.flatnonzero(free)
+        if len(F) == 0:
+            break
+        z, dropped, r, pivot_ratio = _solve_free(Gl, hl, F, ridge)
+        ridge_used = max(ridge_used, r)
+        free[F[dropped | (z <= 0)]] = False
+        if not (z[~dropped] <= 0).any():
+            xl[F[~dropped]] = z[~dropped]
+            break
+    else:
+        free[:] = False
+    stuck = np.zeros(m, dtype=bool)  # entered, but dependent on the free set: skipped until progress
+    best = 0.0
+    single = False
     while True:
-        bad = (free & (xl < -tol)) | (~free & (y < -tol))
-        nbad = int(bad.sum())
-        if nbad == 0:
+        # inner loop: move from the feasible xl towards the optimum on the free set, dropping
+        # variables that hit zero, until that optimum is feasible (Lawson-Hanson's inner loop)
+        while True:
+            F = np.flatnonzero(free)
+            if len(F) == 0:
+                xl[:] = 0.0
+                break
+            z, dropped, r, pivot_ratio = _solve_free(Gl, hl, F, ridge)
+            ridge_used = max(ridge_used, r)
+            if dropped.any():
+                free[F[dropped]] = False
+                z, F = z[~dropped], F[~dropped]
+            if np.all(z > 0):
+                xl[:] = 0.0
+                xl[F] = z
+                break
+            neg = z <= 0
+            step = xl[F][neg] / (xl[F][neg] - z[neg])
+            alpha = float(np.min(step))
+            xl[F] += alpha * (z - xl[F])
+            leaving = F[neg][step <= alpha * (1 + 1e-12)]
+            xl[leaving] = 0.0
+            free[leaving] = False
+            xl[~free] = 0.0
+        F = np.flatnonzero(free)
+        y = (xl[F] @ Gl[F] if len(F) else np.zeros(m)) - hl
+        objective = 0.5 * float(xl[F] @ (y[F] + hl[F])) - float(hl[F] @ xl[F]) if len(F) else 0.0
+        if objective < best - 1e-15 * abs(best):
+            best, single = objective, False
+            stuck[:] = False
+        elif iterations > 0:
+            single = True  # no progress: enter one variable at a time (Lawson-Hanson, finite)
+        violators = ~free & ~stuck & (y < -tol)
+        if trace is not None:
+            trace(iterations, len(F), int(violators.sum()), objective)
+        if not violators.any():
             break
         if iterations >= budget:
             fallback = True
             break
         iterations += 1
-        if nbad < best_violations:
-            best_violations, backup = nbad, 3
-            free ^= bad
-        elif backup > 0:
-            backup -= 1
-            free ^= bad
-        else:  # backup rule: exchange only the largest-index violator (finite termination)
-            j = np.flatnonzero(bad)[-1]
-            free[j] = ~free[j]
-        F = np.flatnonzero(free)
-        xl = np.zeros(m)
-        if len(F):
-            xl[F], r, pivot_ratio = _solve_free(Gl, hl, F, ridge)
-            ridge_used = max(ridge_used, r)
-        y = Gl @ xl - hl
-        y[F] = 0.0
+        cand = np.flatnonzero(violators)
+        limit = 1 if single else (max_enter if max_enter is not None else max(16, len(F) // 2))
+        if len(cand) > limit:
+            cand = cand[np.argsort(y[cand] * inv_norm[cand])[:limit]]
+        if single:
+            stuck[cand] = True  # if it comes back dependent, do not try it again before progress
+        free[cand] = True
     xl = np.maximum(xl, 0.0)
     if fallback:
         xl = _projected_gradient(Gl, hl, xl)
     x[idx] = xl
-    grad = Gl @ xl - hl
-    kkt = float(np.abs(np.minimum(xl, grad)).max() / hscale) if m else 0.0
     F = np.flatnonzero(xl > 0)
-    objective = float(0.5 * xl @ Gl @ xl - hl @ xl)
+    grad = (xl[F] @ Gl[F] if len(F) else np.zeros(m)) - hl
+    kkt = float(np.abs(np.minimum(xl, grad)).max() / hscale) if m else 0.0
+    objective = float(0.5 * xl[F] @ (grad[F] + hl[F]) - hl[F] @ xl[F]) if len(F) else 0.0
     return NNLSResult(x, kkt, len(F), n - len(F), int((~live).sum()), float(ridge_used), pivot_ratio, iterations,
                       time.perf_counter() - t0, fallback, objective)
 

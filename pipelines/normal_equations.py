@@ -91,7 +91,8 @@ def _channel_scale(material: Material) -> np.ndarray | None:
 
 def _syrk_add(G: np.ndarray, T: np.ndarray) -> None:
     # G += T'T on the upper triangle (float32 product, float64 accumulation across blocks)
-    G += blas.ssyrk(1.0, np.asfortranarray(T), trans=1, lower=0)
+    # T' of a C-ordered T is a Fortran-ordered view: BLAS reads it without a copy
+    G += blas.ssyrk(1.0, np.ascontiguousarray(T, dtype=np.float32).T, trans=0, lower=0)
 
 
 def _symmetrise(G: np.ndarray) -> np.ndarray:

@@ -80,6 +80,8 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
                         param.type_cast_value(sub, value)
                 except click.BadParameter as exc:
                     raise InputError(f"[{section}] {key} = {value!r}: {exc.message}", path, "fix the value") from None
+                if isinstance(param.type, click.Path) and isinstance(value, str) and not Path(value).is_absolute():
+                    value = str(scene_dir / value)  # relative to the scene folder, not the working directory
                 default_map.setdefault(name, {})[param.name] = value
     return default_map
 
@@ -145,25 +147,108 @@ def visibility_cmd(obj, force, **kw):
     stages.visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
 
 
+def material_options(f):
+    """Reflectance options shared by render, solve and compare."""
+    opts = [
+        click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
+                     help="Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30})."),
+        click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
+                     help="Reflectance model (overrides the material file)."),
+        click.option("--kd", type=(float, float, float), default=None, help="Diffuse albedo RGB (default 1 1 1)."),
+        click.option("--ks", type=(float, float, float), default=None, help="Specular RGB (default 0 0 0)."),
+        click.option("--shininess", type=click.FloatRange(0), default=None, help="Specular exponent n."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def _material(kw):
+    return stages.material_from_options(kw.pop("material_file"), kw.pop("model"), kw.pop("kd"), kw.pop("ks"),
+                                        kw.pop("shininess"))
+
+
 @_command("render")
 @click.option("--light", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Lat-long light (EXR/HDR, DESIGN convention: row 0 = zenith, +Z up).")
-@click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
-              help="Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30}).")
-@click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
-              help="Reflectance model (overrides the material file).")
-@click.option("--kd", type=(float, float, float), default=None, help="Diffuse albedo RGB (default 1 1 1).")
-@click.option("--ks", type=(float, float, float), default=None, help="Specular RGB (default 0 0 0).")
-@click.option("--shininess", type=click.FloatRange(0), default=None, help="Specular exponent n.")
+@material_options
 @click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
 @visibility_options
 @click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 @click.pass_obj
-def render_cmd(obj, light, material_file, model, kd, ks, shininess, exposure, force, **kw):
+def render_cmd(obj, light, exposure, force, **kw):
     """Render the input view under a given light and material -> out/render.exr, out/render.png."""
     scene = scene_folder(obj["scene"])
-    material = stages.material_from_options(material_file, model, kd, ks, shininess)
+    material = _material(kw)
     stages.render_stage(scene, _vis_opts(kw), light, material, exposure, obj["console"], force, obj["lock_wait"])
+
+
+def solve_options(f):
+    """Options of the light solve, shared by solve and compare."""
+    opts = [
+        click.option("--levels", default="auto", show_default=True,
+                     help="Refinement levels (wavelet, quadtree) or number of lights (points): 'auto' stops "
+                          "when the held-out error stops improving; a number fixes it."),
+        click.option("--face-resolution", type=int, default=None,
+                     help="discrete: face resolution of the texel grid (power of two <= --resolution; "
+                          "default --resolution)."),
+        click.option("--sh-order", type=int, default=2, show_default=True,
+                     help="sh: highest order l ((l+1)^2 coefficients)."),
+        click.option("--held-out", type=float, default=0.1, show_default=True,
+                     help="Fraction of the pixels kept out of the fit to choose the model size."),
+        click.option("--min-gain", type=float, default=0.01, show_default=True,
+                     help="--levels auto: a level must lower the held-out error by this fraction to be kept."),
+        click.option("--linear-input", is_flag=True,
+                     help="The photo's 8/16-bit values are linear, not sRGB."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def _solve_opts(kw, basis="wavelet", sh_nonnegative=False):
+    from .solve import SolveOptions
+
+    return SolveOptions(basis, str(kw.pop("levels")), kw.pop("face_resolution"), kw.pop("sh_order"), sh_nonnegative,
+                        kw.pop("held_out"), kw.pop("min_gain"), kw.pop("linear_input"))
+
+
+@_command("solve")
+@click.option("--basis", default="wavelet", show_default=True,
+              type=click.Choice(["wavelet", "quadtree", "discrete", "sh", "points"]),
+              help="Light representation: the paper's adaptive Haar wavelets, its quadtree twin, one value per "
+                   "texel, spherical harmonics, or a few directional lights.")
+@click.option("--sh-nonnegative", is_flag=True, help="sh: constrain the light to be >= 0 at every texel.")
+@solve_options
+@material_options
+@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@visibility_options
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def solve_cmd(obj, basis, sh_nonnegative, exposure, force, **kw):
+    """Recover the light from the photo -> out/light_latlong.exr, relit.png, solve_report.json, ..."""
+    from . import solve
+
+    scene = scene_folder(obj["scene"])
+    material = _material(kw)
+    opts = _solve_opts(kw, basis, sh_nonnegative)
+    solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"])
+
+
+@_command("compare")
+@solve_options
+@material_options
+@visibility_options
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def compare_cmd(obj, force, **kw):
+    """Solve with every basis on this scene -> out/compare.md (table), compare.json, compare.png (speed vs error)."""
+    from . import solve
+
+    scene = scene_folder(obj["scene"])
+    material = _material(kw)
+    opts = _solve_opts(kw)
+    solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 
 
 @_command("check")

@@ -285,17 +285,10 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
         if photo is None and residual_path.exists():
             residual_path.unlink()  # it belonged to a photo that is gone
         if photo is not None:
-            ref = photo.pixels[data.samples.pixel[:, 0], data.samples.pixel[:, 1]].astype(np.float64)
-            ok = ~photo.saturated[data.samples.pixel[:, 0], data.samples.pixel[:, 1]]
-            err = values[ok] - ref[ok]
-            rel = float(np.sqrt(np.mean(err**2)) / max(np.sqrt(np.mean(ref[ok] ** 2)), 1e-30))
-            summary.update({"relative_rmse_vs_photo": rel, "bias_vs_photo": float(values[ok].mean() / max(ref[ok].mean(), 1e-30) - 1)})
-            heat = rd.pixels_to_image(np.abs(err).mean(axis=1), data.samples.pixel[ok], camera.height, camera.width)
             outputs.append(residual_path)
-            # white = an error of 10 % of the bright (95th percentile) radiance
-            scale = 0.1 * float(np.percentile(np.abs(ref[ok]).mean(axis=1), 95))
-            images.write_png(outputs[-1], heat_map(heat, scale), already_display=True)
-            console.result(f"render: relative RMSE vs {photo_path.name}: {100 * rel:.2f} % over {int(ok.sum())} pixels")
+            summary.update(compare_to_photo(values, photo, data.samples, camera, residual_path))
+            console.result(f"render: relative RMSE vs {photo_path.name}: "
+                           f"{100 * summary['relative_rmse_vs_photo']:.2f} % over {summary['compared_pixels']} pixels")
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, summary)
         for p in outputs:
@@ -303,9 +296,10 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
     return d
 
 
-def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None) -> list[Path]:
+def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None,
+                unobservable: np.ndarray | None = None) -> list[Path]:
     """A cube-map light as <stem>_latlong.exr (exchange format), <stem>_cross.exr and a preview PNG
-    of the cross (texels outside the layout drawn dark grey)."""
+    of the cross (texels outside the layout dark grey, unobservable texels dark magenta)."""
     from pipelines import cubemap, images
 
     height = height or max(64, 2 * cube.resolution)
@@ -315,8 +309,35 @@ def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int 
     images.write_exr(paths[1], cross)
     preview = images.tonemap(cross)
     preview[~valid] = 0.15
-    images.write_png(paths[2], preview, already_display=True)
+    if unobservable is not None and np.any(unobservable):
+        marked, _ = cubemap.cross_image(np.asarray(unobservable, np.float64), cube)
+        preview[marked > 0.5] = (0.35, 0.0, 0.35)
+    images.write_png(paths[2], upscale(preview), already_display=True)
     return paths
+
+
+def upscale(image: np.ndarray, width: int = 512) -> np.ndarray:
+    """Nearest-neighbour enlargement of a small preview to about `width` pixels across."""
+    k = max(1, width // image.shape[1])
+    return np.repeat(np.repeat(image, k, axis=0), k, axis=1)
+
+
+def compare_to_photo(values: np.ndarray, photo, samples, camera, heat_path: Path) -> dict:
+    """Relative RMSE and bias of rendered pixel values against the photo (saturated pixels left
+    out), and a residual heat map (white = an error of 10 % of the 95th-percentile radiance)."""
+    from pipelines import images
+    from pipelines import render as rd
+
+    rows, cols = samples.pixel[:, 0], samples.pixel[:, 1]
+    ref = photo.pixels[rows, cols].astype(np.float64)
+    ok = ~photo.saturated[rows, cols]
+    err = values[ok] - ref[ok]
+    rel = float(np.sqrt(np.mean(err**2)) / max(np.sqrt(np.mean(ref[ok] ** 2)), 1e-30)) if ok.any() else float("nan")
+    bias = float(values[ok].mean() / max(ref[ok].mean(), 1e-30) - 1) if ok.any() else float("nan")
+    heat = rd.pixels_to_image(np.abs(err).mean(axis=1), samples.pixel[ok], camera.height, camera.width)
+    scale = 0.1 * float(np.percentile(np.abs(ref[ok]).mean(axis=1), 95)) if ok.any() else 1.0
+    images.write_png(heat_path, heat_map(heat, scale), already_display=True)
+    return {"relative_rmse_vs_photo": rel, "bias_vs_photo": bias, "compared_pixels": int(ok.sum())}
 
 
 def heat_map(values: np.ndarray, scale: float) -> np.ndarray:

@@ -1,0 +1,342 @@
+"""The light-solve stages: `solve` (one basis -> light, relit view, report) and `compare` (all bases
+on one scene -> table and speed-vs-error plot). The numerics are in `pipelines.light`."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipelines.errors import InputError
+
+from .cache import SceneCache, atomic_output, write_json_atomic
+from .scenefiles import SceneFiles
+from .stages import (Console, VisibilityOptions, compare_to_photo, heat_map, load_photo, upscale, visibility_stage,
+                     write_light)
+
+SOLVE_VERSION = 1
+COMPARE_VERSION = 1
+BASES = ("wavelet", "quadtree", "discrete", "sh", "points")
+SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
+              "the albedo (DESIGN §2)")
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    basis: str = "wavelet"
+    levels: str = "auto"  # "auto" or a count: refinement levels (wavelet, quadtree) / lights (points)
+    face_resolution: int | None = None  # discrete: face resolution (default: the visibility's R)
+    sh_order: int = 2
+    sh_nonnegative: bool = False
+    held_out: float = 0.1
+    min_gain: float = 0.01
+    linear_input: bool = False
+
+    def check(self, vis: VisibilityOptions) -> None:
+        if self.basis not in BASES:
+            raise InputError(f"unknown --basis {self.basis!r}", None, f"use one of {', '.join(BASES)}")
+        if self.levels != "auto":
+            try:
+                n = int(self.levels)
+            except ValueError:
+                n = 0
+            if n < 1:
+                raise InputError(f"--levels must be 'auto' or a positive count, got {self.levels!r}", None,
+                                 "use --levels auto (default) or e.g. --levels 4")
+        if not 0 <= self.held_out <= 0.5:
+            raise InputError(f"--held-out must be a fraction from 0 to 0.5, got {self.held_out}", None,
+                             "use e.g. --held-out 0.1")
+        if self.levels == "auto" and self.held_out == 0 and self.basis in ("wavelet", "quadtree", "points"):
+            raise InputError("--levels auto needs held-out pixels, but --held-out is 0", None,
+                             "use --held-out 0.1, or give a fixed --levels N")
+        if not 0 <= self.min_gain < 1:
+            raise InputError(f"--min-gain must be in [0, 1), got {self.min_gain}", None, "use e.g. 0.01")
+        if not 0 <= self.sh_order <= 8:
+            raise InputError(f"--sh-order must be 0..8, got {self.sh_order}", None, "use 2 (9 coefficients)")
+        r = self.face_resolution
+        if r is not None and (r < 1 or r > vis.resolution or r & (r - 1)):
+            raise InputError(f"--face-resolution must be a power of two up to --resolution ({vis.resolution}), "
+                             f"got {r}", None, f"use e.g. --face-resolution {vis.resolution}")
+
+    def cache_params(self) -> dict:
+        """The options that can change this basis' result (others do not rerun the stage)."""
+        p = asdict(self)
+        if self.basis not in ("wavelet", "quadtree", "points"):
+            p.pop("levels"), p.pop("min_gain")
+        if self.basis != "discrete":
+            p.pop("face_resolution")
+        if self.basis != "sh":
+            p.pop("sh_order"), p.pop("sh_nonnegative")
+        return p
+
+    @property
+    def levels_value(self) -> int | str:
+        return "auto" if self.levels == "auto" else int(self.levels)
+
+
+@dataclass
+class Problem:
+    """Everything a solve needs, loaded once: visibility, photo values, normal equations."""
+
+    camera: object
+    photo_path: Path
+    photo: object
+    data: object  # VisibilityData
+    values: np.ndarray  # (P, 3) photo radiance at the used pixels
+    saturated: np.ndarray  # (P,) bool
+    held_out: np.ndarray  # (P,) bool
+    ne: object  # NormalEquations
+    unobservable: np.ndarray
+    observability: np.ndarray
+
+    def pixel_counts(self) -> dict:
+        return {"used": int(len(self.values)), "saturated_excluded": int(self.saturated.sum()),
+                "fit": int(self.ne.fit.n_pixels), "held_out": int(self.ne.held_out.n_pixels)}
+
+    def observability_summary(self) -> dict:
+        n = len(self.unobservable)
+        return {"texels": n, "unobservable": int(self.unobservable.sum()),
+                "unobservable_fraction": float(self.unobservable.mean()),
+                "weakly_observed": int(((self.observability < 1e-3) & ~self.unobservable).sum()),
+                "note": "observability = sqrt(G_ii / max G_ii): how strongly the used pixels respond to a "
+                        "texel's radiance; unobservable texels (0) get no light"}
+
+
+def _problem(scene: SceneFiles, cache: SceneCache, material, opts: SolveOptions, console: Console, stage: str,
+             camera, photo_path, photo) -> Problem:
+    from pipelines import light as lt
+    from pipelines import visibility as vis
+    from pipelines.normal_equations import build_normal_equations, holdout_mask
+
+    data = vis.read_visibility(cache.dir / "visibility.h5")
+    rows, cols = data.samples.pixel[:, 0], data.samples.pixel[:, 1]
+    values = photo.pixels[rows, cols].astype(np.float64)
+    saturated = photo.saturated[rows, cols]
+    if saturated.all():
+        raise InputError("every used pixel is saturated (clipped)", photo_path,
+                         "use a darker exposure or an HDR (EXR) photo")
+    held = holdout_mask(data.samples.pixel, opts.held_out) if opts.held_out > 0 else np.zeros(len(values), bool)
+    console.say(f"{stage}: normal equations over {len(values)} pixels x {data.cube.n_texels} texels"
+                + (f" ({int(saturated.sum())} saturated pixels left out)" if saturated.any() else ""))
+    ne = build_normal_equations(data, values, material, use=~saturated, held_out=held,
+                                progress=lambda done, total: console.progress(stage, done, total))
+    console.say(f"{stage}: normal equations in {ne.seconds:.1f} s")
+    obs, unobservable = lt.observability(ne)
+    return Problem(camera, photo_path, photo, data, values, saturated, held, ne, unobservable, obs)
+
+
+def _solve(problem: Problem, opts: SolveOptions, basis: str, console: Console, stage: str, nonneg=None):
+    from pipelines import light as lt
+
+    def progress(rec):
+        held = "" if rec.held_out_rmse is None else f", held-out {100 * rec.held_out_rmse:.3f} %"
+        console.say(f"{stage}: {basis} level {rec.index}: {rec.n_coefficients} coefficients, "
+                    f"fit {100 * rec.fit_rmse:.3f} %{held}")
+
+    return lt.solve(problem.ne, problem.data.cube, basis, opts.levels_value, opts.face_resolution, opts.sh_order,
+                    opts.sh_nonnegative if nonneg is None else nonneg, opts.min_gain, progress)
+
+
+def _brightest(solution, cube) -> dict:
+    from pipelines.cubemap import direction_to_spherical
+
+    lum = solution.light @ np.array([0.2126, 0.7152, 0.0722])
+    i = int(np.argmax(lum))
+    theta, phi = direction_to_spherical(cube.directions[i:i + 1])
+    return {"texel": i, "direction": cube.directions[i].tolist(), "theta_deg": float(np.degrees(theta[0])),
+            "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": solution.light[i].tolist()}
+
+
+def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material, exposure,
+                console: Console, force: bool = False, lock_wait: float = 600.0):
+    """Recover the light -> out/light_latlong.exr, light_cross.exr/png, observability.png,
+    coefficients.h5, relit.exr/png, residual.png, solve_report.json."""
+    from pipelines import images
+    from pipelines import light as lt
+    from pipelines import render as rd
+    from pipelines.cubemap import cross_image
+    from pipelines.scene import read_camera
+
+    vis_opts.check()
+    opts.check(vis_opts)
+    camera = read_camera(scene.camera)
+    photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
+    cache = SceneCache(scene.root)
+    with cache.lock(lock_wait, console.say):
+        vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
+        params = {**opts.cache_params(), "material": material.to_json(), "exposure": exposure}
+        d = cache.plan("solve", SOLVE_VERSION, params, {"photo": photo_path}, {"visibility": vdec.key}, force)
+        console.decision(d)
+        if not d.run:
+            return d
+        t0 = time.monotonic()
+        problem = _problem(scene, cache, material, opts, console, "solve", camera, photo_path, photo)
+        cube = problem.data.cube
+        if problem.unobservable.any():
+            console.say(f"solve: {int(problem.unobservable.sum())} of {cube.n_texels} light directions are "
+                        "unobservable (no used pixel sees them): they stay at zero, drawn magenta")
+        sol = _solve(problem, opts, opts.basis, console, "solve")
+        if sol.details.get("min_radiance", 0.0) < 0:
+            console.say(f"solve: warning: the {sol.basis} light goes negative (min {sol.details['min_radiance']:.4g}, "
+                        f"{100 * sol.details['negative_fraction']:.0f} % of the texels): it is kept as solved; "
+                        "tools that clip it get a different light (use --sh-nonnegative for a physical one)")
+        out = scene.out
+        outputs = write_light(out, "light", sol.light, cube, unobservable=problem.unobservable)
+        obs_cross, valid = cross_image(problem.observability, cube)
+        obs_img = heat_map(obs_cross, 1.0)
+        obs_img[~valid] = 0.15
+        outputs.append(out / "observability.png")
+        images.write_png(outputs[-1], upscale(obs_img), already_display=True)
+        outputs.append(out / "coefficients.h5")
+        with atomic_output(outputs[-1]) as tmp:
+            lt.write_solution(tmp, sol, cube, problem.unobservable, {"material": str(material.to_json())})
+        relit = rd.render(problem.data, sol.light, material)
+        img = rd.pixels_to_image(relit, problem.data.samples.pixel, camera.height, camera.width)
+        outputs += [out / "relit.exr", out / "relit.png", out / "residual.png"]
+        images.write_exr(outputs[-3], img)
+        images.write_png(outputs[-2], img, exposure)
+        versus = compare_to_photo(relit, photo, problem.data.samples, camera, outputs[-1])
+        report = {
+            "format": "wavelight-solve-report-1",
+            "scene": str(scene.root), "photo": photo_path.name, "basis": sol.basis,
+            "options": {**asdict(opts), "resolution": vis_opts.resolution, "hemisphere": vis_opts.hemisphere,
+                        "supersample": vis_opts.supersample},
+            "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
+            "pixels": problem.pixel_counts(),
+            "normal_equations_seconds": problem.ne.seconds,
+            "observability": problem.observability_summary(),
+            "relit": versus,
+            "brightest_direction": _brightest(sol, cube),
+            "solution": sol.summary(),
+            "seconds": time.monotonic() - t0,
+        }
+        outputs.append(out / "solve_report.json")
+        write_json_atomic(outputs[-1], _jsonable(report))
+        summary = {"basis": sol.basis, "coefficients": sol.n_coefficients,
+                   "relative_rmse_vs_photo": versus["relative_rmse_vs_photo"],
+                   "held_out_rmse": sol.held_out_rmse, "unobservable_texels": int(problem.unobservable.sum())}
+        cache.record(d, outputs, report["seconds"], summary)
+        held = "" if sol.held_out_rmse is None else f", held-out {100 * sol.held_out_rmse:.2f} %"
+        b = report["brightest_direction"]
+        kept = f"level {sol.chosen} kept of 0-{len(sol.levels) - 1}" if len(sol.levels) > 1 else "one solve"
+        console.result(f"solve: {sol.basis}, {sol.n_coefficients} coefficients ({kept}): relit error {100 * versus['relative_rmse_vs_photo']:.2f} % over "
+                       f"{versus['compared_pixels']} pixels{held}; brightest direction theta "
+                       f"{b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> {cache.relative(outputs[0])}")
+        for p in outputs:
+            console.say(f"solve: wrote {cache.relative(p)}")
+    return d
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        v = float(value)
+        return v if np.isfinite(v) else None
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+# -- compare -----------------------------------------------------------------------------------
+def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material,
+                  console: Console, force: bool = False, lock_wait: float = 600.0):
+    """Every basis on one scene at one resolution -> out/compare.json, compare.md, compare.png."""
+    from pipelines.scene import read_camera
+
+    vis_opts.check()
+    opts.check(vis_opts)
+    camera = read_camera(scene.camera)
+    photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
+    cache = SceneCache(scene.root)
+    with cache.lock(lock_wait, console.say):
+        vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
+        params = {**asdict(opts), "material": material.to_json()}
+        params.pop("basis")
+        d = cache.plan("compare", COMPARE_VERSION, params, {"photo": photo_path}, {"visibility": vdec.key}, force)
+        console.decision(d)
+        if not d.run:
+            return d
+        t0 = time.monotonic()
+        problem = _problem(scene, cache, material, opts, console, "compare", camera, photo_path, photo)
+        rows = []
+        runs = [("wavelet", None), ("quadtree", None), ("discrete", None), ("sh", False), ("sh", True),
+                ("points", None)]
+        for basis, nonneg in runs:
+            sol = _solve(problem, opts, basis, console, "compare", nonneg)
+            min_rel = sol.details.get("min_radiance_relative", float(sol.light.min() / max(sol.light.max(), 1e-300)))
+            rows.append({"basis": sol.basis, "coefficients": sol.n_coefficients,
+                         "levels": len(sol.levels), "fit_rmse": sol.levels[sol.chosen].fit_rmse,
+                         "held_out_rmse": sol.held_out_rmse, "all_pixels_rmse": sol.fit_rmse,
+                         "seconds": sol.seconds, "min_radiance_relative": min_rel,
+                         "kkt_residual": sol.solver.get("kkt_residual")})
+            console.say(f"compare: {sol.basis}: {sol.n_coefficients} coefficients, "
+                        f"{100 * sol.fit_rmse:.2f} % in {sol.seconds:.2f} s")
+        out = scene.out
+        table = {"format": "wavelight-compare-1", "scene": str(scene.root), "resolution": vis_opts.resolution,
+                 "hemisphere": vis_opts.hemisphere, "pixels": problem.pixel_counts(),
+                 "normal_equations_seconds": problem.ne.seconds,
+                 "observability": problem.observability_summary(), "rows": rows,
+                 "columns": {"fit_rmse": "relative RMSE over the fit pixels at the chosen level",
+                             "held_out_rmse": "relative RMSE over the held-out pixels (not fitted)",
+                             "all_pixels_rmse": "relative RMSE of the final light (re-solved on all pixels)",
+                             "seconds": "solve time after the normal equations",
+                             "min_radiance_relative": "lowest texel radiance / highest (negative: not a light)"}}
+        outputs = [out / "compare.json", out / "compare.md", out / "compare.png"]
+        write_json_atomic(outputs[0], _jsonable(table))
+        text = compare_markdown(table)
+        with atomic_output(outputs[1]) as tmp:
+            tmp.write_text(text)
+        compare_plot(table, outputs[2])
+        seconds = time.monotonic() - t0
+        cache.record(d, outputs, seconds, {"rows": len(rows)})
+        console.result(text.rstrip())
+        for p in outputs:
+            console.say(f"compare: wrote {cache.relative(p)}")
+    return d
+
+
+def compare_markdown(table: dict) -> str:
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.2f} %"
+
+    lines = [f"Light bases on {Path(table['scene']).name} at R = {table['resolution']} "
+             f"({table['pixels']['fit']} fit / {table['pixels']['held_out']} held-out pixels; "
+             f"normal equations {table['normal_equations_seconds']:.1f} s, not included below)", "",
+             "| basis | coefficients | fit error | held-out error | all-pixel error | time (s) | min radiance |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in table["rows"]:
+        lines.append(f"| {r['basis']} | {r['coefficients']} | {pct(r['fit_rmse'])} | {pct(r['held_out_rmse'])} | "
+                     f"{pct(r['all_pixels_rmse'])} | {r['seconds']:.3f} | {r['min_radiance_relative']:+.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def compare_plot(table: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=100)
+    for r in table["rows"]:
+        err = r["held_out_rmse"] if r["held_out_rmse"] is not None else r["all_pixels_rmse"]
+        ax.scatter(max(r["seconds"], 1e-4), 100 * err, s=30 + 4 * np.sqrt(r["coefficients"]))
+        ax.annotate(f"{r['basis']} ({r['coefficients']})", (max(r["seconds"], 1e-4), 100 * err),
+                    textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("solve time after the normal equations (s)")
+    ax.set_ylabel("held-out relative RMSE (%)")
+    ax.set_title(f"{Path(table['scene']).name}, R = {table['resolution']}")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
