@@ -22,11 +22,11 @@ demo: $(STAMP)
 	rm -rf $(DEMO)/$(SCENE)
 	mkdir -p $(DEMO)
 	cp -r sample_data/$(SCENE) $(DEMO)/$(SCENE)
-	$(BIN)/wavelight -s $(DEMO)/$(SCENE) visibility
-	$(BIN)/wavelight -s $(DEMO)/$(SCENE) render --light $(DEMO)/$(SCENE)/truth/env_latlong.exr \
-	    --material $(DEMO)/$(SCENE)/truth/material.json
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) solve
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) compare
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) status
-	@echo "results: $(DEMO)/$(SCENE)/out (render.exr, render.png, render_residual.png)"
+	@echo "results: $(DEMO)/$(SCENE)/out (light_latlong.exr, light_cross.png, relit.png, residual.png,"
+	@echo "         solve_report.json, compare.md, compare.png); the true light: $(DEMO)/$(SCENE)/truth"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

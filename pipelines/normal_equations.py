@@ -13,13 +13,17 @@ its own G.
 
 from __future__ import annotations
 
+import os
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import blas
 
 from .render import Material, transport
+from .threads import blas_threads
 from .visibility import VisibilityData
 
 
@@ -89,10 +93,10 @@ def _channel_scale(material: Material) -> np.ndarray | None:
     return a if shared else None
 
 
-def _syrk_add(G: np.ndarray, T: np.ndarray) -> None:
-    # G += T'T on the upper triangle (float32 product, float64 accumulation across blocks)
+def _syrk(T: np.ndarray) -> np.ndarray:
+    """Upper triangle of T'T (float32 product; the caller accumulates blocks in float64)."""
     # T' of a C-ordered T is a Fortran-ordered view: BLAS reads it without a copy
-    G += blas.ssyrk(1.0, np.ascontiguousarray(T, dtype=np.float32).T, trans=0, lower=0)
+    return blas.ssyrk(1.0, np.ascontiguousarray(T, dtype=np.float32).T, trans=0, lower=0)
 
 
 def _symmetrise(G: np.ndarray) -> np.ndarray:
@@ -101,7 +105,7 @@ def _symmetrise(G: np.ndarray) -> np.ndarray:
 
 def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Material,
                            use: np.ndarray | None = None, held_out: np.ndarray | None = None,
-                           rows: int = 2048, progress=None) -> NormalEquations:
+                           rows: int = 2048, progress=None, threads: int | None = None) -> NormalEquations:
     """Accumulate G, h, b'b for the fit and held-out pixel sets.
 
     Parameters
@@ -111,6 +115,7 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     material : reflectance used to build the transport.
     use : (P,) bool, pixels that may be fitted at all (e.g. not saturated); default all.
     held_out : (P,) bool, pixels kept out of the fit for model selection; default none.
+    threads : worker threads (default: the machine's cores, at most 4).
     """
     t0 = time.perf_counter()
     b = np.asarray(photo, dtype=np.float64)
@@ -128,26 +133,50 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
         parts[name] = {"G": np.zeros((nG, N, N)), "h": np.zeros((N, 3)), "bb": np.zeros(3), "n": 0}
     s = vis.samples
     ref = None if scale is None else int(np.argmax(kd + ks))
-    for sl, V in vis.blocks(rows):
+
+    def block(sl: slice) -> dict:
+        """Everything one block of pixel rows adds to the two parts (runs in a worker thread)."""
+        V = vis.block(sl)
         D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
         bb = b[sl]
+        add = {}
         for name, sel in (("fit", use[sl] & ~held_out[sl]), ("held_out", use[sl] & held_out[sl])):
             if not sel.any():
                 continue
-            part = parts[name]
-            part["n"] += int(sel.sum())
-            part["bb"] += (bb[sel] ** 2).sum(axis=0)
             if scale is not None:
                 T = kd[ref] * D[sel] + (ks[ref] * S[sel] if S is not None else 0)
-                _syrk_add(part["G"][0], T)
-                part["h"] += (T.T.astype(np.float64) @ bb[sel]) * scale[None, :]  # T_c = a_c T_ref
+                grams = [_syrk(T)]
+                h = (T.T.astype(np.float64) @ bb[sel]) * scale[None, :]  # T_c = a_c T_ref
             else:
+                grams, h = [], np.zeros((N, 3))
                 for c in range(3):
                     T = kd[c] * D[sel] + (ks[c] * S[sel] if S is not None else 0)
-                    _syrk_add(part["G"][c], T)
-                    part["h"][:, c] += T.T.astype(np.float64) @ bb[sel, c]
-        if progress:
-            progress(sl.stop, P)
+                    grams.append(_syrk(T))
+                    h[:, c] = T.T.astype(np.float64) @ bb[sel, c]
+            add[name] = (int(sel.sum()), (bb[sel] ** 2).sum(axis=0), grams, h)
+        return add
+
+    # Blocks run on a few threads, each with single-threaded BLAS (threads.py: no spin-waiting when
+    # the machine is busy; transport's numpy work runs in parallel too); the main thread folds the
+    # results in, in order, into float64 sums, with at most `workers + 1` blocks in flight.
+    slices = [slice(a, min(P, a + rows)) for a in range(0, P, rows)]
+    workers = max(1, min(threads or os.cpu_count() or 1, 4, len(slices)))
+    with blas_threads(1), ThreadPoolExecutor(workers) as pool:
+        pending = deque()
+        for i in range(len(slices) + workers + 1):
+            if i < len(slices):
+                pending.append((slices[i], pool.submit(block, slices[i])))
+            if pending and (len(pending) > workers or i >= len(slices)):
+                sl, fut = pending.popleft()
+                for name, (n, bb2, grams, h) in fut.result().items():
+                    part = parts[name]
+                    part["n"] += n
+                    part["bb"] += bb2
+                    for g, add in zip(part["G"], grams):
+                        g += add
+                    part["h"] += h
+                if progress:
+                    progress(sl.stop, P)
     out = {}
     for name, part in parts.items():
         G = np.stack([_symmetrise(g) for g in part["G"]])

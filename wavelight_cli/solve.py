@@ -315,7 +315,7 @@ def compare_markdown(table: dict) -> str:
              "|---|---:|---:|---:|---:|---:|---:|"]
     for r in table["rows"]:
         lines.append(f"| {r['basis']} | {r['coefficients']} | {pct(r['fit_rmse'])} | {pct(r['held_out_rmse'])} | "
-                     f"{pct(r['all_pixels_rmse'])} | {r['seconds']:.3f} | {r['min_radiance_relative']:+.3f} |")
+                     f"{pct(r['all_pixels_rmse'])} | {r['seconds']:.3f} | {round(r['min_radiance_relative'], 3) + 0.0:+.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -325,15 +325,23 @@ def compare_plot(table: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=100)
-    for r in table["rows"]:
+    for k, r in enumerate(table["rows"]):
         err = r["held_out_rmse"] if r["held_out_rmse"] is not None else r["all_pixels_rmse"]
         ax.scatter(max(r["seconds"], 1e-4), 100 * err, s=30 + 4 * np.sqrt(r["coefficients"]))
         ax.annotate(f"{r['basis']} ({r['coefficients']})", (max(r["seconds"], 1e-4), 100 * err),
-                    textcoords="offset points", xytext=(6, 4), fontsize=8)
+                    textcoords="offset points", xytext=(6, 4 + 9 * (k % 3)), fontsize=8)
     ax.set_xscale("log")
+    ax.set_yscale("log")
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_formatter(plain)
+        axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+        axis.set_minor_formatter(plain)
     ax.set_xlabel("solve time after the normal equations (s)")
-    ax.set_ylabel("held-out relative RMSE (%)")
+    ax.set_ylabel("held-out relative RMSE (%, log)")
     ax.set_title(f"{Path(table['scene']).name}, R = {table['resolution']}")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
