@@ -148,11 +148,21 @@ def solve_nonnegative(part: SystemPart, initial_free: np.ndarray | None = None) 
     C = part.h.shape[1]
     x = np.zeros((part.h.shape[0], C))
     results = []
+    # without a per-channel guess, each channel after the brightest starts from the positive set of
+    # the one before (the colour channels of one light share most of their support)
+    order = np.argsort(-np.abs(part.h).sum(axis=0))
+    previous = None
     with blas_threads(1):  # many small factorisations: threads cost more than they give (threads.py)
-        for c in range(C):
-            guess = None if initial_free is None else initial_free[:, c] if initial_free.ndim == 2 else initial_free
+        for c in order:
+            if initial_free is not None and initial_free.ndim == 2:
+                guess = initial_free[:, c]
+            elif previous is not None:
+                guess = previous
+            else:
+                guess = initial_free
             r = nnls_gram(part.gram(c), part.h[:, c], initial_free=guess)
             x[:, c] = r.x
+            previous = r.x > 0
             results.append(r)
     return x, _solver_summary(results)
 
@@ -228,7 +238,7 @@ def _refine(tree: HaarTree, light: np.ndarray, coefficients: np.ndarray, basis: 
 
 
 def solve_tree(ne: NormalEquations, cube: CubeMap, basis: str = "wavelet", levels: int | str = "auto",
-               min_gain: float = 0.01, patience: int = 2, progress=None) -> LightSolution:
+               min_gain: float = 0.01, patience: int = 1, progress=None) -> LightSolution:
     """The paper's coarse-to-fine solve (`wavelet`) or its quadtree twin.
 
     levels : "auto" (refine until the held-out error stops falling by `min_gain` for `patience`
@@ -406,7 +416,7 @@ def _sh_nonnegative(G: np.ndarray, h: np.ndarray, Y: np.ndarray, start: np.ndarr
 
 # -- points ------------------------------------------------------------------------------------
 def solve_points(ne: NormalEquations, cube: CubeMap, max_points: int | str = "auto", limit: int = 64,
-                 min_gain: float = 0.01, patience: int = 2) -> LightSolution:
+                 min_gain: float = 0.01, patience: int = 3) -> LightSolution:
     """Directional lights at texel centres, added one at a time where the fit's gradient is largest.
 
     max_points : "auto" (stop when the held-out error stops falling) or a fixed count.
