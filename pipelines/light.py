@@ -280,18 +280,20 @@ def solve_tree(ne: NormalEquations, cube: CubeMap, basis: str = "wavelet", level
     chosen = stopper.best_index if levels == "auto" else len(records) - 1
     best = records[chosen]
     light, coeffs, info = best.light, best.coefficients, best.solver
+    both = combine(fit, held)
     if held.n_pixels > 0:  # re-solve the chosen tree on all pixels
         P = haar.leaf_matrix(best.tree)
-        x, info = solve_nonnegative(project(combine(fit, held), P), best_leaf_guess(best, P))
+        x, info = solve_nonnegative(project(both, P), _leaf_guess(best, P))
         light = np.asarray(P @ x)
         light[unobservable] = 0.0
         coeffs = haar.leaf_values_to_coefficients(x, best.tree) if basis == "wavelet" else x
-    all_rmse = combine(fit, held).relative_rmse(light)
+    all_rmse = both.relative_rmse(light)
     return LightSolution(basis, light, coeffs, records, chosen, all_rmse, info, time.perf_counter() - t_all,
                          best.tree, {"unobservable_texels": int(unobservable.sum())})
 
 
-def best_leaf_guess(level: Level, P) -> np.ndarray:
+def _leaf_guess(level: Level, P) -> np.ndarray:
+    """Leaves of the tree behind P where the level's light is positive (a warm start)."""
     counts = np.asarray(P.sum(axis=0)).ravel()
     return (np.asarray(P.T @ level.light) / np.maximum(counts, 1)[:, None]) > 0
 
@@ -471,6 +473,8 @@ def solve_points(ne: NormalEquations, cube: CubeMap, max_points: int | str = "au
     part = SystemPart(both.G[np.ix_(sub, sub)] if both.G.ndim == 2 else both.G[:, sub][:, :, sub],
                       both.h[sub], both.bb, both.n_pixels, both.channel_scale)
     xs, info = solve_nonnegative(part)
+    keep = xs.max(axis=1) > 0  # the re-solve on all pixels may switch a light off
+    sub, xs = sub[keep], xs[keep]
     light = np.zeros((N, 3))
     light[sub] = xs
     theta, phi = direction_to_spherical(cube.directions[sub])
@@ -478,7 +482,7 @@ def solve_points(ne: NormalEquations, cube: CubeMap, max_points: int | str = "au
     points = [{"texel": int(i), "direction": cube.directions[i].tolist(),
                "theta_deg": float(np.degrees(t)), "phi_deg": float(np.degrees(p) % 360.0),
                "irradiance_rgb": (xs[k] * omega[k]).tolist()}
-              for k, (i, t, p) in enumerate(zip(sub, theta, phi)) if xs[k].max() > 0]
+              for k, (i, t, p) in enumerate(zip(sub, theta, phi))]
     return LightSolution("points", light, xs * omega[:, None], records, chosen, both.relative_rmse(light), info,
                          time.perf_counter() - t_all, None,
                          {"points": points, "unobservable_texels": int(unobservable.sum())})
@@ -535,7 +539,8 @@ def write_solution(path, solution: LightSolution, cube: CubeMap, unobservable: n
     light, unobservable texels zero); `coefficients` (k, 3) in the basis' terms (wavelet: Haar
     coefficients of `tree`, orthonormal in the texel inner product, rows in `tree/coefficient_index`
     order (tile, kind 0=scaling 1=h 2=v 3=d, level, i, j); quadtree/discrete: leaf values in
-    `tree/leaves` order; sh: real SH coefficients; points: irradiance per light); `unobservable`
+    `tree/leaves` order; sh: real SH coefficients; points: irradiance per light; they describe the
+    light before unobservable texels are zeroed, `light` after); `unobservable`
     (N,) bool; `levels/NN/` the same per refinement level, with its errors as attributes.
     """
     import h5py
