@@ -43,6 +43,7 @@ from .threads import blas_threads
 
 BASES = ("wavelet", "quadtree", "discrete", "sh", "points")
 ZERO_TOL = 1e-9  # light below this fraction of the brightest leaf counts as zero (refine / prune)
+EXACT_FIT = 1e-6  # a relative RMSE this small is an exact fit (rounding): refining stops there
 UNOBSERVABLE_TOL = 1e-12  # G_ii below this fraction of max G_ii: no pixel constrains the texel
 
 
@@ -180,8 +181,12 @@ class _Stopper:
         self.best, self.best_index, self.stall = np.inf, -1, 0
 
     def update(self, index: int, score: float) -> bool:
-        if score < self.best * (1.0 - self.min_gain) or self.best_index < 0:
+        if self.best <= EXACT_FIT:  # nothing left to explain: further steps only fit rounding
+            self.stall += 1
+        elif score < self.best * (1.0 - self.min_gain) or self.best_index < 0:
             self.best, self.best_index, self.stall = score, index, 0
+            if score <= EXACT_FIT:
+                self.stall = self.patience  # stop here
         else:  # a step that gains less than min_gain does not earn its extra coefficients
             self.stall += 1
         return self.stall >= self.patience
@@ -385,8 +390,8 @@ def solve_sh(ne: NormalEquations, cube: CubeMap, order: int = 2, nonnegative: bo
     seen = raw[~unobservable]
     peak = max(float(seen.max(initial=0.0)), 1e-300)
     details = {"sh_order": order, "nonnegative": nonnegative,
-               "min_radiance": float(seen.min(initial=0.0)),
-               "min_radiance_relative": float(seen.min(initial=0.0) / peak),
+               "min_radiance": float(seen.min()) if len(seen) else 0.0,
+               "min_radiance_relative": float(seen.min() / peak) if len(seen) else 0.0,
                "negative_fraction": float((seen < -1e-9 * peak).mean()) if len(seen) else 0.0,
                "unobservable_texels": int(unobservable.sum())}
     # the light is kept as solved, negative lobes included (the paper's comparison); what clipping
@@ -473,7 +478,9 @@ def solve_points(ne: NormalEquations, cube: CubeMap, max_points: int | str = "au
     part = SystemPart(both.G[np.ix_(sub, sub)] if both.G.ndim == 2 else both.G[:, sub][:, :, sub],
                       both.h[sub], both.bb, both.n_pixels, both.channel_scale)
     xs, info = solve_nonnegative(part)
-    keep = xs.max(axis=1) > 0  # the re-solve on all pixels may switch a light off
+    # the re-solve on all pixels may switch a light off, or leave it a million times dimmer than
+    # the brightest (rounding of a fit that is already exact without it)
+    keep = xs.max(axis=1) > 1e-6 * max(float(xs.max(initial=0.0)), 1e-300)
     sub, xs = sub[keep], xs[keep]
     light = np.zeros((N, 3))
     light[sub] = xs

@@ -151,7 +151,7 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
     Gl = G if len(idx) == n else G[np.ix_(idx, idx)]  # no copy of a large G when every column is live
     hl = h[idx]
     m = len(idx)
-    tol = 1e-10 * hscale
+    tol = 1e-9 * hscale  # a gradient this small is rounding, not a reason to move
     inv_norm = 1.0 / np.sqrt(diag[idx])
     free = np.zeros(m, dtype=bool) if initial_free is None else np.asarray(initial_free, bool)[idx].copy()
     xl = np.zeros(m)

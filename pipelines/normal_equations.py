@@ -94,9 +94,14 @@ def _channel_scale(material: Material) -> np.ndarray | None:
 
 
 def _syrk(T: np.ndarray) -> np.ndarray:
-    """Upper triangle of T'T (float32 product; the caller accumulates blocks in float64)."""
+    """Upper triangle of T'T in float64.
+
+    float64 throughout, not float32 products: G's rounding would otherwise be ~1e-6 of its size,
+    which is both the floor of a noise-free fit and gradient noise that stalls the NNLS near its
+    optimum; and the residual from G (L'GL - 2h'L + b'b) cancels, so G must be accurate for it.
+    """
     # T' of a C-ordered T is a Fortran-ordered view: BLAS reads it without a copy
-    return blas.ssyrk(1.0, np.ascontiguousarray(T, dtype=np.float32).T, trans=0, lower=0)
+    return blas.dsyrk(1.0, np.ascontiguousarray(T, dtype=np.float64).T, trans=0, lower=0)
 
 
 def _symmetrise(G: np.ndarray) -> np.ndarray:
