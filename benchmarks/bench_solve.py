@@ -38,12 +38,14 @@ RUNS = [("wavelet", {}), ("quadtree", {}), ("discrete", {}), ("sh", {}), ("sh", 
         ("points", {})]
 
 
-def load(scene: Path, R: int):
+def load(scene: Path, R: int, step: int = 1):
     camera, pose = read_camera(scene / "camera.json"), read_pose(scene / "pose.json")
     mesh = load_mesh(find_mesh(scene))
     backend = raycast.make_backend(mesh)
     mask = images.read_mask(scene / "mask.png") if (scene / "mask.png").exists() else None
     samples, _ = cam.pixel_samples(camera, pose, mesh, backend, mask, 1)
+    if step > 1:
+        samples = type(samples)(**{k: v[::step] for k, v in vars(samples).items()})
     data = vis.compute_visibility(backend, samples, CubeMap(R))
     photo = images.read_image(scene / "image.exr").pixels
     values = photo[samples.pixel[:, 0], samples.pixel[:, 1]].astype(np.float64)
@@ -69,12 +71,12 @@ def bases(scene: Path, R: int) -> dict:
     return out
 
 
-def nnls(scene: Path, R: int, repeats: int) -> dict:
+def nnls(scene: Path, R: int, repeats: int, step: int) -> dict:
     from scipy.optimize import nnls as scipy_nnls
 
     from pipelines.nnls import nnls_gram
 
-    camera, data, values = load(scene, R)
+    camera, data, values = load(scene, R, step)
     V = data.dense()
     D, _ = transport(V, data.samples.normal, data.samples.view, data.cube, Material())
     T = D.astype(np.float64)
@@ -106,9 +108,10 @@ def main():
     ap.add_argument("--resolution", type=int, default=32)
     ap.add_argument("--mode", choices=["bases", "nnls"], required=True)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--step", type=int, default=4, help="nnls: every step-th used pixel (scipy is slow)")
     args = ap.parse_args()
     result = bases(args.scene, args.resolution) if args.mode == "bases" else nnls(args.scene, args.resolution,
-                                                                                 args.repeats)
+                                                                                 args.repeats, args.step)
     print(json.dumps(result))
 
 

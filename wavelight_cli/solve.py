@@ -104,6 +104,17 @@ class Problem:
                         "texel's radiance; unobservable texels (0) get no light"}
 
 
+def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
+    """Check the options and load the camera and photo: (camera, photo path, photo, cache)."""
+    from pipelines.scene import read_camera
+
+    vis_opts.check()
+    opts.check(vis_opts)
+    camera = read_camera(scene.camera)
+    photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
+    return camera, photo_path, photo, SceneCache(scene.root)
+
+
 def _problem(scene: SceneFiles, cache: SceneCache, material, opts: SolveOptions, console: Console, stage: str,
              camera, photo_path, photo) -> Problem:
     from pipelines import light as lt
@@ -157,13 +168,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines import light as lt
     from pipelines import render as rd
     from pipelines.cubemap import cross_image
-    from pipelines.scene import read_camera
 
-    vis_opts.check()
-    opts.check(vis_opts)
-    camera = read_camera(scene.camera)
-    photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
-    cache = SceneCache(scene.root)
+    camera, photo_path, photo, cache = _inputs(scene, vis_opts, opts)
     with cache.lock(lock_wait, console.say):
         vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
         params = {**opts.cache_params(), "material": material.to_json(), "exposure": exposure}
@@ -250,13 +256,7 @@ def _jsonable(value):
 def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material,
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     """Every basis on one scene at one resolution -> out/compare.json, compare.md, compare.png."""
-    from pipelines.scene import read_camera
-
-    vis_opts.check()
-    opts.check(vis_opts)
-    camera = read_camera(scene.camera)
-    photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
-    cache = SceneCache(scene.root)
+    camera, photo_path, photo, cache = _inputs(scene, vis_opts, opts)
     with cache.lock(lock_wait, console.say):
         vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
         params = {**asdict(opts), "material": material.to_json()}
