@@ -7,6 +7,7 @@ nothing outside the repository is read.
 from __future__ import annotations
 
 import hashlib
+import re
 import json
 import shutil
 import subprocess
@@ -151,3 +152,25 @@ def baseline_scene(tmp_path_factory) -> Path:
         assert (scene / "out" / "render.exr").is_file()
         _BASELINE["scene"] = scene
     return _BASELINE["scene"]
+
+
+def assert_one_error_line(result, culprit: str, quiet: bool) -> str:
+    """A failed command: exit 1, no traceback, exactly one `Error:` line, last on stderr, naming
+    `culprit`; with -q nothing else printed, otherwise only `stage: ...` progress before it."""
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    # Anything but SystemExit means an exception escaped the CLI (a traceback for a real user).
+    assert isinstance(result.exception, SystemExit), repr(result.exception)
+    assert "Traceback" not in result.output
+    err = result.stderr.splitlines()
+    errors = [ln for ln in err if ln.startswith("Error:")]
+    assert len(errors) == 1, result.stderr
+    line = errors[0]
+    assert err[-1] == line, f"the error must be the last line on stderr:\n{result.stderr}"
+    if quiet:
+        assert err == [line], f"with -q only the error line may be printed:\n{result.stderr}"
+        assert result.stdout == "", f"a failed run printed results:\n{result.stdout}"
+    else:  # the other lines are the stages' progress (`stage: ...`)
+        assert all(re.match(r"^[a-z]+: ", ln) for ln in err[:-1]), result.stderr
+    assert culprit in line, f"the error must name {culprit!r}: {line}"
+    assert "\n" not in line
+    return line

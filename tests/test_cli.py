@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from cli_helpers import (
+    assert_one_error_line,
     RES,
     copy_sample,
     copy_scene,
@@ -24,8 +25,6 @@ from cli_helpers import (
     wavelight_exe,
 )
 from wavelight_cli.main import cli
-
-
 
 
 # -- help ---------------------------------------------------------------------------------------
@@ -170,7 +169,6 @@ def _text(text):
     return lambda s: text
 
 
-
 # (id, mutate, command, culprit: what the one Error line must name)
 BAD_INPUT = [
     ("camera-missing", _delete("camera.json"), VIS, _file("camera.json")),
@@ -240,34 +238,14 @@ def _params(cases):
     return out
 
 
-def _assert_one_error_line(result, culprit: str, quiet: bool) -> str:
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    # Anything but SystemExit means an exception escaped the CLI (a traceback for a real user).
-    assert isinstance(result.exception, SystemExit), repr(result.exception)
-    assert "Traceback" not in result.output
-    err = result.stderr.splitlines()
-    errors = [ln for ln in err if ln.startswith("Error:")]
-    assert len(errors) == 1, result.stderr
-    line = errors[0]
-    assert err[-1] == line, f"the error must be the last line on stderr:\n{result.stderr}"
-    if quiet:
-        assert err == [line], f"with -q only the error line may be printed:\n{result.stderr}"
-        assert result.stdout == "", f"a failed run printed results:\n{result.stdout}"
-    else:  # the other lines are the stages' progress (`stage: ...`)
-        assert all(re.match(r"^[a-z]+: ", ln) for ln in err[:-1]), result.stderr
-    assert culprit in line, f"the error must name {culprit!r}: {line}"
-    assert "\n" not in line
-    return line
-
-
 @pytest.mark.parametrize("mutate, command, culprit", _params(BAD_INPUT))
 def test_bad_input_one_error_line_and_cache_untouched(scene, mutate, command, culprit):
     before = snapshot(scene)
     assert ".wavelight/visibility.h5" in before and "out/render.exr" in before
     mutate(scene)
     args = command(scene)
-    line = _assert_one_error_line(invoke(scene, *args), culprit(scene), quiet=False)
-    line_q = _assert_one_error_line(invoke(scene, *args, quiet=True), culprit(scene), quiet=True)
+    line = assert_one_error_line(invoke(scene, *args), culprit(scene), quiet=False)
+    line_q = assert_one_error_line(invoke(scene, *args, quiet=True), culprit(scene), quiet=True)
     assert line == line_q
     after = snapshot(scene)
     assert sorted(after) == sorted(before)
@@ -327,7 +305,7 @@ def test_render_with_bad_photo_leaves_results_untouched(scene):
     before = snapshot(scene)
     _exr("image.exr", (10, 10, 3))(scene)
     result = invoke(scene, *render_args(scene, "--exposure", "2"))
-    line = _assert_one_error_line(result, str(scene / "image.exr"), quiet=False)
+    line = assert_one_error_line(result, str(scene / "image.exr"), quiet=False)
     assert "10x10" in line
     after = snapshot(scene)
     for rel in before:
@@ -363,7 +341,7 @@ def test_lock_held_elsewhere_times_out_with_one_error_line(scene):
             result = invoke(scene, "--lock-wait", "0.3", "visibility", "--resolution", RES, "--force")
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
-    line = _assert_one_error_line(result, str(scene / ".wavelight" / "lock"), quiet=False)
+    line = assert_one_error_line(result, str(scene / ".wavelight" / "lock"), quiet=False)
     assert "lock" in line
     assert "waiting: another wavelight run holds" in result.stderr
     assert snapshot(scene) == before

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import (
+    assert_one_error_line,
     RES,
     copy_scene,
     decision_line,
@@ -544,23 +545,6 @@ def test_linear_input_flag(solved, solved_copy):
 
 # -- 7. bad input --------------------------------------------------------------------------------
 
-def _assert_one_error_line(result, culprit: str, quiet: bool) -> str:
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    assert isinstance(result.exception, SystemExit), repr(result.exception)
-    assert "Traceback" not in result.output
-    err = result.stderr.splitlines()
-    errors = [ln for ln in err if ln.startswith("Error:")]
-    assert len(errors) == 1, result.stderr
-    line = errors[0]
-    assert err[-1] == line, f"the error must be the last line on stderr:\n{result.stderr}"
-    if quiet:
-        assert err == [line], result.stderr
-        assert result.stdout == ""
-    else:
-        assert all(re.match(r"^[a-z]+: ", ln) for ln in err[:-1]), result.stderr
-    assert culprit in line, f"the error must name {culprit!r}: {line}"
-    return line
-
 
 def _delete_photos(scene):
     for name in ("image.exr", "image.png"):
@@ -618,8 +602,8 @@ def test_bad_input_one_error_line_nothing_written(scene, mutate, args, culprit):
     before = snapshot(scene)
     full = [*args, "--resolution", RES]
     name = culprit if culprit.startswith("--") else str(scene / culprit)
-    line = _assert_one_error_line(invoke(scene, *full), name, quiet=False)
-    line_q = _assert_one_error_line(invoke(scene, *full, quiet=True), name, quiet=True)
+    line = assert_one_error_line(invoke(scene, *full), name, quiet=False)
+    line_q = assert_one_error_line(invoke(scene, *full, quiet=True), name, quiet=True)
     assert line == line_q
     assert "\n" not in line
     assert snapshot(scene) == before
@@ -630,7 +614,7 @@ def test_bad_input_one_error_line_nothing_written(scene, mutate, args, culprit):
 
 
 def test_negative_held_out_is_reported_as_given(scene):
-    line = _assert_one_error_line(invoke(scene, "solve", "--resolution", RES, "--held-out", "-0.1"),
+    line = assert_one_error_line(invoke(scene, "solve", "--resolution", RES, "--held-out", "-0.1"),
                                   "--held-out", quiet=False)
     assert "-0.1" in line
 
@@ -641,7 +625,7 @@ def test_failed_solve_leaves_previous_results_untouched(solved_copy):
     scene = solved_copy
     _photo_all_clipped(scene)
     before = snapshot(scene)
-    line = _assert_one_error_line(invoke(scene, "solve", "--resolution", RES), str(scene / "image.png"), quiet=False)
+    line = assert_one_error_line(invoke(scene, "solve", "--resolution", RES), str(scene / "image.png"), quiet=False)
     assert "saturated" in line
     assert snapshot(scene) == before
     rows = _status(scene)
