@@ -79,26 +79,48 @@ class Material:
                 **self.extra}
 
 
-def specular_lobe(normals: np.ndarray, views: np.ndarray, directions: np.ndarray, cosines: np.ndarray,
-                  shininess: float, model: str) -> np.ndarray:
-    """(P, N) specular BRDF values (ks = 1) times nothing else; zero where cosines == 0."""
-    n = np.float32(shininess)
+def lobe_cosines(normals: np.ndarray, views: np.ndarray, directions: np.ndarray, model: str) -> np.ndarray:
+    """(P, N) float32 cosine the specular lobe raises to the power n: N.H (blinn-phong) or R.d
+    (phong, phong-classic; R the mirror of the view direction). Not clipped: may be negative."""
     if model == "blinn-phong":
         # N.H without forming H: |v + d|^2 = 2 + 2 v.d
         vd = views.astype(np.float32) @ directions.astype(np.float32).T
         nv = np.einsum("pk,pk->p", normals, views).astype(np.float32)[:, None]
         with np.errstate(invalid="ignore", divide="ignore"):
-            c = (nv + normals.astype(np.float32) @ directions.astype(np.float32).T) / np.sqrt(
+            return (nv + normals.astype(np.float32) @ directions.astype(np.float32).T) / np.sqrt(
                 np.maximum(2.0 + 2.0 * vd, 1e-12))
-        norm = (n + 8) / (8 * np.pi)
-    else:
+    if model in ("phong", "phong-classic"):
         r = 2.0 * np.einsum("pk,pk->p", normals, views)[:, None] * normals - views  # mirror of v
-        c = r.astype(np.float32) @ directions.astype(np.float32).T
-        norm = (n + 2) / (2 * np.pi) if model == "phong" else 1.0
-    lobe = np.power(np.maximum(c, 0.0), n) * np.float32(norm)
-    if model == "phong-classic":
-        lobe = lobe / np.maximum(cosines, 1e-6)
-    return np.where(cosines > 0, lobe, 0.0).astype(np.float32)
+        return r.astype(np.float32) @ directions.astype(np.float32).T
+    raise ValueError(f"no specular lobe for model {model!r}")
+
+
+def lobe_norm(shininess: float, model: str) -> tuple[float, float]:
+    """The lobe's normalisation factor and its derivative with respect to n."""
+    if model == "blinn-phong":
+        return (shininess + 8) / (8 * np.pi), 1 / (8 * np.pi)
+    if model == "phong":
+        return (shininess + 2) / (2 * np.pi), 1 / (2 * np.pi)
+    return 1.0, 0.0
+
+
+def specular_factors(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap, model: str,
+                     texels: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of the specular transport that do not depend on n, for some texels.
+
+    S_ij = A_ij * lobe_norm(n) * c_ij^n, with A = V w max(0, N.d) (phong-classic: V w, the
+    paper's term has no cosine) and c = max(0, lobe_cosines); A is 0 wherever c or N.d is 0.
+
+    Returns (A, c): two (P, K) float32 arrays, K = the selected texels.
+    """
+    dirs = cube.directions[texels]
+    cos = facing(normals, dirs)
+    c = np.maximum(lobe_cosines(normals, views, dirs, model), 0.0)
+    c = np.nan_to_num(c, nan=0.0)
+    w = cube.solid_angles[texels].astype(np.float32)[None, :]
+    A = V * ((cos > 0) * w if model == "phong-classic" else cos * w)
+    A[c <= 0] = 0.0
+    return A.astype(np.float32, copy=False), c
 
 
 def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
@@ -110,7 +132,7 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     N . m_i with m_i the texel's vector solid angle (`CubeMap.vector_solid_angles`), exact for
     texels wholly above the shading horizon and clamped at 0 for the few that straddle it: as
     cheap as a texel-centre rule and exact where the centre rule is off by O(1/R^2). The specular
-    lobe is evaluated at the texel centre (w_i max(0, N.d_i) f(d_i)). Visibility is per texel (V
+    lobe is evaluated at the texel centre (w_i max(0, N.d_i) f(d_i), `specular_factors`). Visibility is per texel (V
     may be a supersampled fraction).
 
     Parameters
@@ -128,9 +150,9 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     D *= V * np.float32(1.0 / np.pi)
     if not material.specular:
         return D, None
-    cos = facing(normals, cube.directions)
-    S = V * cos * cube.solid_angles.astype(np.float32)[None, :]
-    S *= specular_lobe(normals, views, cube.directions, cos, material.shininess, material.model)
+    S, c = specular_factors(V, normals, views, cube, material.model)
+    norm, _ = lobe_norm(material.shininess, material.model)
+    S *= np.power(c, np.float32(material.shininess)) * np.float32(norm)
     return D, S
 
 

@@ -8,7 +8,7 @@ from scipy.integrate import quad
 
 from pipelines.camera import PixelSamples
 from pipelines.cubemap import CubeMap
-from pipelines.render import Material, pixels_to_image, render, specular_lobe, transport
+from pipelines.render import Material, lobe_cosines, lobe_norm, pixels_to_image, render, specular_factors, transport
 from pipelines.visibility import VisibilityData
 
 
@@ -253,14 +253,19 @@ def test_specular_lobe_peaks_at_the_half_vector_and_vanishes_behind():
     cube = CubeMap(32)
     n = np.array([[0.0, 0.0, 1.0]])
     v = unit([[1.0, 0.0, 1.0]])
-    cos = np.maximum(n @ cube.directions.T, 0.0).astype(np.float32)
-    lobe = specular_lobe(n, v, cube.directions, cos, 50.0, "blinn-phong")
+    cos = np.maximum(n @ cube.directions.T, 0.0)
+    norm, dnorm = lobe_norm(50.0, "blinn-phong")
+    assert dnorm == pytest.approx(1 / (8 * np.pi))
+    lobe = norm * np.maximum(lobe_cosines(n, v, cube.directions, "blinn-phong"), 0.0) ** 50
     # the mirror direction of v about N has H = N: the peak value (n + 8) / (8 pi)
     k = int(np.argmax(lobe[0]))
     mirror = unit([-1.0, 0.0, 1.0])
     assert np.degrees(np.arccos(cube.directions[k] @ mirror)) < 3.0
     assert lobe[0, k] == pytest.approx(58 / (8 * np.pi), rel=1e-2)
-    assert np.all(lobe[0, cos[0] == 0] == 0)
+    # the n-free factor A = V w max(0, N.d) is zero behind the normal
+    A, c = specular_factors(np.ones((1, cube.n_texels), np.float32), n, v, cube, "blinn-phong")
+    np.testing.assert_allclose(A[0], np.where(c[0] > 0, cos[0] * cube.solid_angles, 0.0), rtol=1e-5, atol=1e-12)
+    assert np.all(A[0, cos[0] == 0] == 0)
 
 
 def test_transport_blocks():

@@ -154,18 +154,22 @@ def material_options(f):
                      help="Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30})."),
         click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
                      help="Reflectance model (overrides the material file)."),
-        click.option("--kd", type=(float, float, float), default=None, help="Diffuse albedo RGB (default 1 1 1)."),
-        click.option("--ks", type=(float, float, float), default=None, help="Specular RGB (default 0 0 0)."),
-        click.option("--shininess", type=click.FloatRange(0), default=None, help="Specular exponent n."),
+        click.option("--kd", type=(float, float, float), default=None,
+                     help="Diffuse albedo RGB (default 1 1 1; it sets the light's scale, see README)."),
+        click.option("--ks", type=(float, float, float), default=None,
+                     help="Specular RGB (default 0 0 0; solve with a fitted reflectance: the fit's start, default "
+                          "0.25 x kd)."),
+        click.option("--shininess", type=click.FloatRange(0), default=None,
+                     help="Specular exponent n (solve with a fitted reflectance: the fit's start, default 20)."),
     ]
     for opt in reversed(opts):
         f = opt(f)
     return f
 
 
-def _material(kw):
+def _material(kw, given: set | None = None):
     return stages.material_from_options(kw.pop("material_file"), kw.pop("model"), kw.pop("kd"), kw.pop("ks"),
-                                        kw.pop("shininess"))
+                                        kw.pop("shininess"), given)
 
 
 @_command("render")
@@ -213,6 +217,27 @@ def _solve_opts(kw, basis="wavelet", sh_nonnegative=False):
                         kw.pop("held_out"), kw.pop("min_gain"), kw.pop("linear_input"))
 
 
+def reflectance_options(f):
+    """How solve treats the reflectance."""
+    opts = [
+        click.option("--reflectance", type=click.Choice(["auto", "lambert", "blinn-phong", "phong", "phong-classic",
+                                                         "given"]), default=None,
+                     help="Fit the reflectance: 'auto' (default) keeps Lambertian unless a Blinn-Phong term lowers "
+                          "the held-out error by --min-specular-gain; a model name fits that model (ks, n, kd "
+                          "colour) by Levenberg-Marquardt, alternating with the light; 'given' uses the material "
+                          "options as they are (the default when --material or --model is given)."),
+        click.option("--max-rounds", type=int, default=8, show_default=True,
+                     help="Most light/reflectance rounds of the alternation (it stops earlier when a round "
+                          "lowers the error by < 0.1 %)."),
+        click.option("--min-specular-gain", type=float, default=0.05, show_default=True,
+                     help="--reflectance auto: the held-out error must drop by this fraction to keep a "
+                          "specular term."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
 @_command("solve")
 @click.option("--basis", default="wavelet", show_default=True,
               type=click.Choice(["wavelet", "quadtree", "discrete", "sh", "points"]),
@@ -220,19 +245,26 @@ def _solve_opts(kw, basis="wavelet", sh_nonnegative=False):
                    "texel, spherical harmonics, or a few directional lights.")
 @click.option("--sh-nonnegative", is_flag=True, help="sh: constrain the light to be >= 0 at every texel.")
 @solve_options
+@reflectance_options
 @material_options
 @click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
 @visibility_options
 @click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 @click.pass_obj
-def solve_cmd(obj, basis, sh_nonnegative, exposure, force, **kw):
-    """Recover the light from the photo -> out/light_latlong.exr, relit.png, solve_report.json, ..."""
+def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
+    """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
+    reflectance.json, solve_report.json, ..."""
     from . import solve
 
     scene = scene_folder(obj["scene"])
-    material = _material(kw)
+    given: set = set()
+    material = _material(kw, given)
+    if reflectance is None:
+        reflectance = "given" if given & {"file", "model"} else "auto"
+    refl = solve.ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
     opts = _solve_opts(kw, basis, sh_nonnegative)
-    solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"])
+    solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
+                      refl, given)
 
 
 @_command("compare")
@@ -242,11 +274,20 @@ def solve_cmd(obj, basis, sh_nonnegative, exposure, force, **kw):
 @click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 @click.pass_obj
 def compare_cmd(obj, force, **kw):
-    """Solve with every basis on this scene -> out/compare.md (table), compare.json, compare.png (speed vs error)."""
+    """Solve with every basis on this scene -> out/compare.md (table), compare.json, compare.png (speed vs error).
+
+    The material is the reflectance fitted by `solve` (out/reflectance.json) unless material options are given."""
     from . import solve
 
     scene = scene_folder(obj["scene"])
-    material = _material(kw)
+    given: set = set()
+    material = _material(kw, given)
+    fitted = scene.out / "reflectance.json"
+    if not given and fitted.is_file():
+        material = stages.material_from_options(fitted, None, None, None, None)
+        obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {material.model}, kd "
+                           f"{' '.join(f'{v:.3g}' for v in material.kd)}"
+                           + (f", ks {material.ks[0]:.3g}, n {material.shininess:.3g}" if material.specular else ""))
     opts = _solve_opts(kw)
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 

@@ -16,7 +16,7 @@ from .scenefiles import SceneFiles
 from .stages import (Console, VisibilityOptions, compare_to_photo, heat_map, load_photo, upscale, visibility_stage,
                      write_light)
 
-SOLVE_VERSION = 1
+SOLVE_VERSION = 2
 COMPARE_VERSION = 1
 BASES = ("wavelet", "quadtree", "discrete", "sh", "points")
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -76,6 +76,55 @@ class SolveOptions:
         return "auto" if self.levels == "auto" else int(self.levels)
 
 
+REFLECTANCE_MODES = ("auto", "lambert", "blinn-phong", "phong", "phong-classic", "given")
+DEFAULT_START_KS = 0.25  # start of a specular fit: ks = 0.25 x mean(kd), unless --ks is given
+DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
+
+
+@dataclass(frozen=True)
+class ReflectanceOptions:
+    """What `solve` does about the reflectance: fit it (a model or auto) or take it as given."""
+
+    mode: str = "auto"
+    max_rounds: int = 8
+    min_specular_gain: float = 0.05
+
+    def check(self) -> None:
+        if self.mode not in REFLECTANCE_MODES:
+            raise InputError(f"unknown --reflectance {self.mode!r}", None, f"use one of {', '.join(REFLECTANCE_MODES)}")
+        if not 1 <= self.max_rounds <= 100:
+            raise InputError(f"--max-rounds must be 1..100, got {self.max_rounds}", None, "use e.g. --max-rounds 8")
+        if not 0 <= self.min_specular_gain < 1:
+            raise InputError(f"--min-specular-gain must be in [0, 1), got {self.min_specular_gain}", None,
+                             "use e.g. --min-specular-gain 0.05")
+
+    @property
+    def fits(self) -> bool:
+        return self.mode not in ("lambert", "given")
+
+    def cache_params(self) -> dict:
+        p = asdict(self)
+        if not self.fits:
+            p.pop("max_rounds"), p.pop("min_specular_gain")
+        if self.mode != "auto":
+            p.pop("min_specular_gain", None)
+        return p
+
+    def start(self, material, given: set):
+        """The fit's start: the given material's kd; its ks and n if the user gave them, else
+        ks = DEFAULT_START_KS x mean(kd) and n = DEFAULT_START_SHININESS; the model of --reflectance
+        (auto: the given specular model, else blinn-phong)."""
+        from dataclasses import replace
+
+        from pipelines.render import SPECULAR_MODELS
+
+        model = self.mode if self.mode in SPECULAR_MODELS else (
+            material.model if material.model in SPECULAR_MODELS else "blinn-phong")
+        ks = material.ks if "ks" in given and any(material.ks) else (DEFAULT_START_KS * float(np.mean(material.kd)),) * 3
+        n = material.shininess if "n" in given and material.shininess > 0 else DEFAULT_START_SHININESS
+        return replace(material, model=model, ks=tuple(ks), shininess=float(n))
+
+
 @dataclass
 class Problem:
     """Everything a solve needs, loaded once: visibility, photo values, normal equations."""
@@ -87,9 +136,9 @@ class Problem:
     values: np.ndarray  # (P, 3) photo radiance at the used pixels
     saturated: np.ndarray  # (P,) bool
     held_out: np.ndarray  # (P,) bool
-    ne: object  # NormalEquations
-    unobservable: np.ndarray
-    observability: np.ndarray
+    ne: object  # NormalEquations of the current material (None until `_normal_equations`)
+    unobservable: np.ndarray | None
+    observability: np.ndarray | None
 
     def pixel_counts(self) -> dict:
         return {"used": int(len(self.values)), "saturated_excluded": int(self.saturated.sum()),
@@ -115,11 +164,10 @@ def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
     return camera, photo_path, photo, SceneCache(scene.root)
 
 
-def _problem(scene: SceneFiles, cache: SceneCache, material, opts: SolveOptions, console: Console, stage: str,
-             camera, photo_path, photo) -> Problem:
-    from pipelines import light as lt
+def _load(scene: SceneFiles, cache: SceneCache, opts: SolveOptions, camera, photo_path, photo) -> Problem:
+    """Visibility, photo values, saturated and held-out pixels; normal equations not yet built."""
     from pipelines import visibility as vis
-    from pipelines.normal_equations import build_normal_equations, holdout_mask
+    from pipelines.normal_equations import holdout_mask
 
     data = vis.read_visibility(cache.dir / "visibility.h5")
     rows, cols = data.samples.pixel[:, 0], data.samples.pixel[:, 1]
@@ -129,13 +177,30 @@ def _problem(scene: SceneFiles, cache: SceneCache, material, opts: SolveOptions,
         raise InputError("every used pixel is saturated (clipped)", photo_path,
                          "use a darker exposure or an HDR (EXR) photo")
     held = holdout_mask(data.samples.pixel, opts.held_out) if opts.held_out > 0 else np.zeros(len(values), bool)
-    console.say(f"{stage}: normal equations over {len(values)} pixels x {data.cube.n_texels} texels"
-                + (f" ({int(saturated.sum())} saturated pixels left out)" if saturated.any() else ""))
-    ne = build_normal_equations(data, values, material, use=~saturated, held_out=held,
+    return Problem(camera, photo_path, photo, data, values, saturated, held, None, None, None)
+
+
+def _normal_equations(problem: Problem, material, console: Console, stage: str) -> Problem:
+    """Build the normal equations of `material` into the problem (and its observability)."""
+    from pipelines import light as lt
+    from pipelines.normal_equations import build_normal_equations
+
+    n_sat = int(problem.saturated.sum())
+    console.say(f"{stage}: normal equations over {len(problem.values)} pixels x {problem.data.cube.n_texels} texels"
+                + (f" ({n_sat} saturated pixels left out)" if n_sat else ""))
+    ne = build_normal_equations(problem.data, problem.values, material, use=~problem.saturated,
+                                held_out=problem.held_out,
                                 progress=lambda done, total: console.progress(stage, done, total))
     console.say(f"{stage}: normal equations in {ne.seconds:.1f} s")
-    obs, unobservable = lt.observability(ne)
-    return Problem(camera, photo_path, photo, data, values, saturated, held, ne, unobservable, obs)
+    problem.ne = ne
+    problem.observability, problem.unobservable = lt.observability(ne)
+    return problem
+
+
+def _problem(scene: SceneFiles, cache: SceneCache, material, opts: SolveOptions, console: Console, stage: str,
+             camera, photo_path, photo) -> Problem:
+    problem = _load(scene, cache, opts, camera, photo_path, photo)
+    return _normal_equations(problem, material, console, stage)
 
 
 def _solve(problem: Problem, opts: SolveOptions, basis: str, console: Console, stage: str, nonneg=None):
@@ -160,30 +225,81 @@ def _brightest(solution, cube) -> dict:
             "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": solution.light[i].tolist()}
 
 
+def _material_text(m) -> str:
+    kd = " ".join(f"{v:.3g}" for v in m.kd)
+    if not m.specular:
+        return f"{m.model} kd {kd}"
+    return f"{m.model} kd {kd}, ks {float(np.mean(m.ks)):.3g}, n {m.shininess:.3g}"
+
+
+def _reflectance(problem: Problem, opts: SolveOptions, refl: ReflectanceOptions, material, given: set,
+                 console: Console):
+    """Light and reflectance by --reflectance: given, lambert, a specular model (alternation) or auto."""
+    from pipelines import reflectance as rf
+    from pipelines.render import Material
+
+    def solve_light(m):
+        _normal_equations(problem, m, console, "solve")
+        return _solve(problem, opts, opts.basis, console, "solve"), problem.ne
+
+    def progress(r):
+        held = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
+        lm = "" if r.fit is None else f" (LM: {r.fit.evaluations} evaluations, {r.fit.seconds:.1f} s)"
+        console.say(f"solve: reflectance round {r.index}: {_material_text(r.material)}{lm}: "
+                    f"error {100 * r.fit_rmse:.3f} %{held}")
+
+    use = ~problem.saturated
+    try:
+        if refl.mode == "given":
+            return rf.fixed(material, solve_light, "given", "given by the user (--material/--model/--kd/--ks/"
+                            "--shininess): not fitted", progress)
+        if refl.mode == "lambert":
+            return rf.fixed(Material(kd=material.kd), solve_light, "lambert", "lambert: chosen by --reflectance",
+                            progress)
+        start = refl.start(material, given)
+        console.say(f"solve: reflectance {refl.mode}: start {_material_text(start)}")
+        if refl.mode == "auto":
+            return rf.select(problem.data, problem.values, start, solve_light, use, problem.held_out, material.kd,
+                             refl.min_specular_gain, refl.max_rounds, progress=progress)
+        return rf.alternate(problem.data, problem.values, start, solve_light, use, problem.held_out, material.kd,
+                            refl.max_rounds, progress=progress)
+    except rf.FitError as exc:
+        raise InputError(f"cannot fit the reflectance: {exc}", problem.photo_path,
+                         "use --reflectance lambert, or check the photo and the pose") from None
+
+
 def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material, exposure,
-                console: Console, force: bool = False, lock_wait: float = 600.0):
-    """Recover the light -> out/light_latlong.exr, light_cross.exr/png, observability.png,
-    coefficients.h5, relit.exr/png, residual.png, solve_report.json."""
+                console: Console, force: bool = False, lock_wait: float = 600.0,
+                refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None):
+    """Recover the light (and the reflectance, by `refl`) -> out/light_latlong.exr, light_cross.exr/png,
+    observability.png, coefficients.h5, relit.exr/png, residual.png, reflectance.json, solve_report.json."""
     from pipelines import images
     from pipelines import light as lt
     from pipelines import render as rd
     from pipelines.cubemap import cross_image
 
+    refl.check()
     camera, photo_path, photo, cache = _inputs(scene, vis_opts, opts)
     with cache.lock(lock_wait, console.say):
         vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
-        params = {**opts.cache_params(), "material": material.to_json(), "exposure": exposure}
+        params = {**opts.cache_params(), "reflectance": refl.cache_params(), "material": material.to_json(),
+                  "exposure": exposure}
+        if refl.fits:
+            params["start"] = refl.start(material, given or set()).to_json()
         d = cache.plan("solve", SOLVE_VERSION, params, {"photo": photo_path}, {"visibility": vdec.key}, force)
         console.decision(d)
         if not d.run:
             return d
         t0 = time.monotonic()
-        problem = _problem(scene, cache, material, opts, console, "solve", camera, photo_path, photo)
+        problem = _load(scene, cache, opts, camera, photo_path, photo)
+        result = _reflectance(problem, opts, refl, material, given or set(), console)
+        material, sol = result.material, result.solution
+        problem.ne = result.context
+        problem.observability, problem.unobservable = lt.observability(problem.ne)
         cube = problem.data.cube
         if problem.unobservable.any():
             console.say(f"solve: {int(problem.unobservable.sum())} of {cube.n_texels} light directions are "
                         "unobservable (no used pixel sees them): they stay at zero, drawn magenta")
-        sol = _solve(problem, opts, opts.basis, console, "solve")
         if sol.details.get("min_radiance", 0.0) < 0:
             console.say(f"solve: warning: the {sol.basis} light goes negative (min {sol.details['min_radiance']:.4g}, "
                         f"{100 * sol.details['negative_fraction']:.0f} % of the texels): it is kept as solved; "
@@ -204,12 +320,16 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         images.write_exr(outputs[-3], img)
         images.write_png(outputs[-2], img, exposure)
         versus = compare_to_photo(relit, photo, problem.data.samples, camera, outputs[-1])
+        reflectance = {"format": "wavelight-reflectance-1", **result.summary(), "scale_ambiguity": SCALE_NOTE}
+        outputs.append(out / "reflectance.json")
+        write_json_atomic(outputs[-1], _jsonable(reflectance))
         report = {
             "format": "wavelight-solve-report-1",
             "scene": str(scene.root), "photo": photo_path.name, "basis": sol.basis,
             "options": {**asdict(opts), "resolution": vis_opts.resolution, "hemisphere": vis_opts.hemisphere,
-                        "supersample": vis_opts.supersample},
+                        "supersample": vis_opts.supersample, "reflectance": asdict(refl)},
             "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
+            "reflectance": reflectance,
             "pixels": problem.pixel_counts(),
             "normal_equations_seconds": problem.ne.seconds,
             "observability": problem.observability_summary(),
@@ -222,7 +342,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         write_json_atomic(outputs[-1], _jsonable(report))
         summary = {"basis": sol.basis, "coefficients": sol.n_coefficients,
                    "relative_rmse_vs_photo": versus["relative_rmse_vs_photo"],
-                   "held_out_rmse": sol.held_out_rmse, "unobservable_texels": int(problem.unobservable.sum())}
+                   "held_out_rmse": sol.held_out_rmse, "unobservable_texels": int(problem.unobservable.sum()),
+                   "reflectance": material.to_json()}
         cache.record(d, outputs, report["seconds"], summary)
         held = "" if sol.held_out_rmse is None else f", held-out {100 * sol.held_out_rmse:.2f} %"
         b = report["brightest_direction"]
@@ -230,6 +351,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         console.result(f"solve: {sol.basis}, {sol.n_coefficients} coefficients ({kept}): relit error {100 * versus['relative_rmse_vs_photo']:.2f} % over "
                        f"{versus['compared_pixels']} pixels{held}; brightest direction theta "
                        f"{b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> {cache.relative(outputs[0])}")
+        console.result(f"solve: reflectance {_material_text(material)} ({result.decision})")
         for p in outputs:
             console.say(f"solve: wrote {cache.relative(p)}")
     return d

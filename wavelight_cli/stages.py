@@ -222,7 +222,10 @@ def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
     return path, img
 
 
-def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess):
+def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
+                          given: set | None = None):
+    """The material of --material/--model/--kd/--ks/--shininess; `given` (if a set) receives the
+    names of the fields the user set ('model', 'kd', 'ks', 'n', 'file')."""
     from pipelines.render import Material
 
     data: dict = {}
@@ -243,6 +246,11 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
         data["ks"] = list(ks)
     if shininess is not None:
         data["n"] = shininess
+    if given is not None:
+        given.update(k for k in ("kd", "ks") if k in data)
+        given.update({"model"} if "model" in data or "type" in data else set())
+        given.update({"n"} if "n" in data or "shininess" in data else set())
+        given.update({"file"} if material_file is not None else set())
     try:
         return Material.from_json(data)
     except (ValueError, TypeError) as exc:

@@ -1,0 +1,222 @@
+"""Reflectance fitting (pipelines.reflectance) on synthetic photos rendered through OUR forward model.
+
+Geometry: the teapot scene (a curved, glossy object on a ground plane: highlights on the object,
+shadows on the plane), every 4th used pixel, visibility at R = 16 from the `forward_render` fixture.
+Light: a sun texel over a coloured sky. Material: Blinn-Phong kd = (0.6, 0.5, 0.4), ks = 0.4,
+n = 30 (kd is coloured on purpose: a grey specular term makes its colour observable). Photo: our
+render plus Gaussian noise of 0.5 % of the mean.
+
+Numbers quoted in docstrings were measured with the code as of this writing.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pipelines import light as lt
+from pipelines import reflectance as rf
+from pipelines.normal_equations import build_normal_equations, holdout_mask
+from pipelines.render import Material, render
+
+SCENE = "teapot_sun_phong"
+RESOLUTION = 16
+STEP = 4
+NOISE = 0.005
+TRUE = Material(kd=(0.6, 0.5, 0.4), ks=(0.4, 0.4, 0.4), shininess=30.0, model="blinn-phong")
+SUN = np.array([0.8, -0.3, 0.5]) / np.linalg.norm([0.8, -0.3, 0.5])  # 32 deg elevation
+
+
+def rel_rmse(values, reference) -> float:
+    return float(np.sqrt(np.mean((values - reference) ** 2) / np.mean(reference**2)))
+
+
+class Synthetic:
+    """A photo of the teapot rendered by our model under a known light and material."""
+
+    def __init__(self, vis, material: Material, seed: int = 0):
+        self.vis, self.cube, self.material = vis, vis.cube, material
+        L = np.tile([0.25, 0.3, 0.4], (self.cube.n_texels, 1))  # bluish sky
+        L[self.cube.lookup(SUN)] = [40.0, 36.0, 30.0]  # warm sun
+        self.light = L
+        self.clean = render(vis, L, material)
+        rng = np.random.default_rng(seed)
+        self.noise = NOISE * self.clean.mean() * rng.normal(size=self.clean.shape)
+        self.photo = self.clean + self.noise
+        self.held = holdout_mask(vis.samples.pixel, 0.1)
+        self.light_solves = 0
+
+    def solve_light(self, material: Material):
+        self.light_solves += 1
+        ne = build_normal_equations(self.vis, self.photo, material, held_out=self.held)
+        return lt.solve(ne, self.cube, "wavelet"), ne
+
+    def data(self, light=None, model="blinn-phong"):
+        return rf.specular_data(self.vis, self.photo, self.light if light is None else light, model,
+                                held_out=self.held)
+
+
+@pytest.fixture(scope="module")
+def vis16(forward_render):
+    return forward_render(SCENE, RESOLUTION, STEP).visibility
+
+
+@pytest.fixture(scope="module")
+def glossy(vis16):
+    return Synthetic(vis16, TRUE)
+
+
+def start_from(ks: float, n: float, model="blinn-phong", kd=(0.5, 0.5, 0.5)) -> Material:
+    return Material(kd=kd, ks=(ks, ks, ks), shininess=n, model=model)
+
+
+# -- the forward model's pieces ------------------------------------------------------------------
+def test_specular_data_reproduces_render(glossy):
+    """The LM's cached evaluation is the one forward model: kd D L + ks S(n) L equals render()."""
+    data = glossy.data()
+    assert data.fit.sum() > 0.8 * len(data.fit)
+    for n in (5.0, 30.0, 300.0):
+        m = replace(TRUE, shininess=n)
+        expected = render(glossy.vis, glossy.light, m)
+        np.testing.assert_allclose(data.predict(m.kd, 0.4, n), expected, rtol=2e-4, atol=1e-6 * expected.max())
+
+
+@pytest.mark.parametrize("model", ["blinn-phong", "phong", "phong-classic"])
+def test_jacobian_in_log_n_matches_finite_differences(glossy, model):
+    data = glossy.data(model=model)
+    n, h = 25.0, 1e-2  # central differences in log n: O(h^2) = 1e-4 relative, above float32 rounding
+    _, dS = data.specular(n, derivative=True)
+    fd = (data.specular(n * np.exp(h)) - data.specular(n * np.exp(-h))) / (2 * h)
+    np.testing.assert_allclose(dS, fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+    assert np.abs(dS).max() > 0
+
+
+# -- LM with the light fixed ---------------------------------------------------------------------
+@pytest.mark.parametrize("ks, n", [(0.8, 60.0), (0.2, 15.0), (0.8, 15.0), (0.2, 60.0)])
+def test_lm_recovers_ks_n_and_kd_colour_from_2x_off(glossy, ks, n):
+    """With the true light fixed, from starts 2x off: ks, n and kd's colour within 1 % (measured
+    0.1-0.3 %), the error at the noise floor, and the one-sigma uncertainties cover the error."""
+    fit = rf.fit_specular(glossy.data(), start_from(ks, n))
+    m = fit.material
+    assert fit.path == "lm"
+    assert m.ks[0] == pytest.approx(0.4, rel=0.01)
+    assert m.shininess == pytest.approx(30.0, rel=0.01)
+    np.testing.assert_allclose(m.kd, TRUE.kd, rtol=0.01)
+    assert abs(m.ks[0] - 0.4) < 5 * fit.sigma["ks"] + 1e-3
+    assert abs(m.shininess - 30.0) < 5 * fit.sigma["n"] + 0.05
+    noise_floor = rel_rmse(glossy.photo, glossy.clean)
+    assert fit.fit_rmse == pytest.approx(noise_floor, rel=0.05)
+    assert fit.ks_significant
+
+
+@pytest.mark.parametrize("model, n_true", [("phong", 12.0), ("phong-classic", 12.0)])
+def test_lm_fits_the_phong_models(vis16, model, n_true):
+    """The paper's Phong (R.d)^n, normalised and classic: n and ks recovered within 1 %."""
+    truth = Material(kd=(0.5, 0.5, 0.5), ks=(0.3, 0.3, 0.3), shininess=n_true, model=model)
+    syn = Synthetic(vis16, truth, seed=1)
+    fit = rf.fit_specular(syn.data(model=model), start_from(0.15, 2 * n_true, model))
+    assert fit.material.model == model
+    assert fit.material.shininess == pytest.approx(n_true, rel=0.01)
+    assert fit.material.ks[0] == pytest.approx(0.3, rel=0.01)
+
+
+@pytest.mark.parametrize("n_start", [300.0, 3.0, 5000.0, 1.0])
+def test_far_off_starts_converge_or_say_why(glossy, n_start):
+    """n 10x too large or small (and the extremes 1 and 5000): the result is finite and either
+    recovered (measured: all four converge, 300 and 5000 through the n-scan restart) or explained."""
+    fit = rf.fit_specular(glossy.data(), start_from(0.4, n_start))
+    m = fit.material
+    values = [*m.kd, *m.ks, m.shininess, fit.fit_rmse, fit.sigma["ks"], fit.sigma["n"]]
+    assert np.all(np.isfinite(values))
+    if fit.path != "scan":
+        assert m.shininess == pytest.approx(30.0, rel=0.02)
+        assert m.ks[0] == pytest.approx(0.4, rel=0.02)
+    else:
+        assert "scan" in fit.message and m.shininess in rf.SCAN_SHININESS
+    assert fit.message
+
+
+def test_lm_on_a_diffuse_photo_finds_no_significant_specular(vis16):
+    syn = Synthetic(vis16, Material(kd=(0.6, 0.5, 0.4)), seed=2)
+    fit = rf.fit_specular(syn.data(), start_from(0.2, 20.0))
+    assert np.all(np.isfinite([fit.material.ks[0], fit.material.shininess]))
+    assert fit.material.ks[0] < 0.01
+    assert not fit.ks_significant
+
+
+def test_zero_light_is_a_clear_error(glossy):
+    with pytest.raises(rf.FitError, match="zero everywhere"):
+        glossy.data(light=np.zeros_like(glossy.light))
+
+
+def test_normalise_keeps_every_pixel(glossy):
+    """light x albedo is one product: scaling kd and ks by 1/s and the light by s renders the same."""
+    m = replace(TRUE, kd=(1.2, 1.0, 0.8), ks=(0.8, 0.8, 0.8))
+    m2, L2, s = rf.normalise(m, glossy.light, (0.5, 0.5, 0.5))
+    assert s == pytest.approx(2.0)
+    assert np.mean(m2.kd) == pytest.approx(0.5)
+    np.testing.assert_allclose(render(glossy.vis, L2, m2), render(glossy.vis, glossy.light, m), rtol=1e-5)
+
+
+# -- alternation with the light solve --------------------------------------------------------------
+@pytest.fixture(scope="module")
+def alternated(glossy):
+    """From ks and n both 2x off (0.8, 60) and a grey kd with the right mean."""
+    glossy.light_solves = 0
+    result = rf.alternate(glossy.vis, glossy.photo, start_from(0.8, 60.0), glossy.solve_light,
+                          held_out=glossy.held)
+    return result, glossy.light_solves
+
+
+def test_alternation_recovers_the_material(alternated):
+    """ks within 5 % and n within 10 % (the issue's bounds; measured: see the assertion messages)."""
+    result, _ = alternated
+    m = result.material
+    assert m.ks[0] == pytest.approx(0.4, rel=0.05), m
+    assert m.shininess == pytest.approx(30.0, rel=0.10), m
+    np.testing.assert_allclose(m.kd, TRUE.kd, rtol=0.05)
+
+
+def test_alternation_reaches_the_noise_floor(glossy, alternated):
+    """The light and material explain the photo as well as the truth does: the relit error against
+    the noisy photo is the noise's own size, and against the clean render a fraction of it."""
+    result, _ = alternated
+    relit = render(glossy.vis, result.solution.light, result.material)
+    noise = rel_rmse(glossy.photo, glossy.clean)
+    assert rel_rmse(relit, glossy.photo) < 1.05 * noise
+    assert rel_rmse(relit, glossy.clean) < 0.5 * noise
+    # the light is recovered too: the sun's texel within 5 % (scale fixed by mean(kd) = 0.5)
+    k = glossy.cube.lookup(SUN)
+    np.testing.assert_allclose(result.solution.light[k], glossy.light[k], rtol=0.05)
+
+
+def test_alternation_rounds_lower_the_error_and_stop(alternated):
+    result, solves = alternated
+    errors = [r.fit_rmse for r in result.rounds]
+    assert errors[result.chosen_round] == min(errors)
+    assert errors[-1] < 0.5 * errors[0]  # the 2x-off start relights badly; the fit does not
+    assert len(result.rounds) - 1 <= 8 and solves == len(result.rounds)
+    assert all(r.fit is not None for r in result.rounds[1:])
+    assert result.summary()["rounds"][1]["lm"]["evaluations"] > 0
+
+
+# -- auto: the simplest model the data support ------------------------------------------------------
+def test_auto_stays_lambertian_on_a_diffuse_scene(vis16):
+    """A Lambertian photo: the probe (LM with the Lambertian light fixed) finds no significant
+    specular term, and no specular light solve is run."""
+    syn = Synthetic(vis16, Material(kd=(0.5, 0.5, 0.5)), seed=3)
+    result = rf.select(syn.vis, syn.photo, start_from(0.125, 20.0), syn.solve_light, held_out=syn.held,
+                       kd_reference=(0.5, 0.5, 0.5))
+    assert result.material.model == "lambert"
+    assert result.decision.startswith("lambert")
+    assert syn.light_solves == 1
+
+
+def test_auto_switches_on_a_specular_scene(glossy):
+    glossy.light_solves = 0
+    result = rf.select(glossy.vis, glossy.photo, start_from(0.125, 20.0), glossy.solve_light,
+                       held_out=glossy.held, kd_reference=(0.5, 0.5, 0.5))
+    assert result.material.model == "blinn-phong", result.decision
+    assert result.candidates["blinn-phong"]["held_out_rmse"] < 0.5 * result.candidates["lambert"]["held_out_rmse"]
+    assert result.material.ks[0] == pytest.approx(0.4, rel=0.05)
+    assert result.rounds[0].material.model == "lambert"
