@@ -502,9 +502,10 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     gain = 1.0 - probe_err / plain if plain else 0.0
     candidates["probe"] = {**probe.summary(), "gain": gain}
     if not probe.ks_significant or gain < min_gain:
-        why = "ks is not significant" if not probe.ks_significant else \
-            f"it lowers the {which.replace('_', '-')} error by {100 * gain:.2f} % < {100 * min_gain:g} %"
-        return stay(f"lambert: with the Lambertian light fixed, a {start.model} term ({why})",
+        ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
+        why = (f"is not significant (ks {ks:.3g} +- {sd:.2g})" if not probe.ks_significant else
+               f"lowers the {which.replace('_', '-')} error by only {100 * gain:.2f} % (< {100 * min_gain:g} %)")
+        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}",
                     [r0, Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe)])
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
     shifted = (lambda r: progress(replace(r, index=r.index + 1))) if progress else None

@@ -26,7 +26,7 @@ from cli_helpers import (
 )
 
 SOLVE_OUTPUTS = ("light_latlong.exr", "light_cross.exr", "light_cross.png", "observability.png", "coefficients.h5",
-                 "relit.exr", "relit.png", "residual.png", "solve_report.json")
+                 "relit.exr", "relit.png", "residual.png", "reflectance.json", "solve_report.json")
 COMPARE_OUTPUTS = ("compare.json", "compare.md", "compare.png")
 COMPARE_BASES = ["wavelet", "quadtree", "discrete", "sh", "sh+", "points"]
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -207,7 +207,8 @@ def test_solve_result_line_on_stdout(solved):
     scene, result = solved
     rep = _report(scene)
     lines = result.stdout.splitlines()
-    assert len(lines) == 1, result.stdout
+    assert len(lines) == 2, result.stdout  # the light, then the reflectance
+    assert lines[1].startswith("solve: reflectance lambert kd 1 1 1 (lambert: a blinn-phong term fitted")
     m = re.match(r"^solve: wavelet, (\d+) coefficients .*relit error (\d+\.\d\d) % over (\d+) pixels", lines[0])
     assert m, lines[0]
     assert int(m.group(1)) == rep["solution"]["coefficients"]
@@ -286,8 +287,9 @@ def test_light_power_follows_the_material(solved, solved_copy):
     # the same product light x albedo: the relit view is unchanged
     assert rep["relit"]["relative_rmse_vs_photo"] == pytest.approx(
         _report(solved[0])["relit"]["relative_rmse_vs_photo"], rel=1e-3)
+    assert rep["reflectance"]["mode"] == "given"  # a material file is taken as given, not fitted
     # --kd on the command line is the same material: same key, nothing to do
-    err = ok(invoke(solved_copy, "solve", "--resolution", RES, "--kd", "0.8", "0.8", "0.8"))
+    err = ok(invoke(solved_copy, "solve", "--resolution", RES, "--kd", "0.8", "0.8", "0.8", "--reflectance", "given"))
     assert decision_line(err, "solve").startswith("solve: skipped, up to date")
 
 
@@ -574,6 +576,13 @@ def _nothing(scene):
     pass
 
 
+def _write_out(name, text):
+    def mutate(scene):
+        (scene / "out").mkdir(exist_ok=True)
+        (scene / "out" / name).write_text(text)
+    return mutate
+
+
 # (id, mutate, command args, culprit: the scene-relative file or the option the Error line must name)
 SOLVE_BAD_INPUT = [
     ("levels-0", _nothing, ["solve", "--levels", "0"], "--levels"),
@@ -590,7 +599,11 @@ SOLVE_BAD_INPUT = [
     ("photo-wrong-size", _photo_wrong_size, ["solve"], "image.exr"),
     ("photo-all-clipped", _photo_all_clipped, ["solve"], "image.png"),
     ("toml-bad-basis", _toml('[solve]\nbasis = "spline"\n'), ["solve"], "scene.toml"),
+    ("max-rounds-0", _nothing, ["solve", "--max-rounds", "0"], "--max-rounds"),
+    ("min-specular-gain-1", _nothing, ["solve", "--min-specular-gain", "1"], "--min-specular-gain"),
+    ("reflectance-start-n-0", _nothing, ["solve", "--reflectance", "blinn-phong", "--shininess", "0"], "--shininess"),
     ("compare-levels-0", _nothing, ["compare", "--levels", "0"], "--levels"),
+    ("compare-bad-reflectance-json", _write_out("reflectance.json", "{not json"), ["compare"], "out/reflectance.json"),
     ("compare-photo-wrong-size", _photo_wrong_size, ["compare"], "image.exr"),
     ("compare-photo-missing", _delete_photos, ["compare"], "image.exr"),
 ]
@@ -600,6 +613,7 @@ SOLVE_BAD_INPUT = [
 def test_bad_input_one_error_line_nothing_written(scene, mutate, args, culprit):
     mutate(scene)
     before = snapshot(scene)
+    planted = {p.name for p in (scene / "out").glob("*")}  # files the mutation itself put there
     full = [*args, "--resolution", RES]
     name = culprit if culprit.startswith("--") else str(scene / culprit)
     line = assert_one_error_line(invoke(scene, *full), name, quiet=False)
@@ -608,7 +622,7 @@ def test_bad_input_one_error_line_nothing_written(scene, mutate, args, culprit):
     assert "\n" not in line
     assert snapshot(scene) == before
     for out in (*SOLVE_OUTPUTS, *COMPARE_OUTPUTS):
-        assert not (scene / "out" / out).exists(), out
+        assert out in planted or not (scene / "out" / out).exists(), out
     stages = manifest(scene)["stages"]
     assert "solve" not in stages and "compare" not in stages
 
@@ -662,3 +676,63 @@ def test_scene_toml_solve_python_names_and_flags(scene):
     assert rep["basis"] == "sh+"
     assert rep["solution"]["coefficients"] == 4  # order 1
     assert rep["material"]["kd"] == [0.8, 0.8, 0.8]
+
+
+# -- reflectance ---------------------------------------------------------------------------------
+
+def test_default_solve_fits_the_reflectance_and_stays_lambertian(solved):
+    """The sample scene is Lambertian: `auto` (the default) probes a Blinn-Phong term with the
+    Lambertian light fixed, finds it not worth keeping, and writes reflectance.json saying so."""
+    scene, result = solved
+    refl = json.loads((scene / "out" / "reflectance.json").read_text())
+    assert refl["format"] == "wavelight-reflectance-1"
+    assert refl["mode"] == "auto" and refl["model"] == "lambert"
+    assert refl["kd"] == [1.0, 1.0, 1.0] and refl["ks"] == [0.0, 0.0, 0.0]
+    assert refl["decision"].startswith("lambert")
+    probe = refl["candidates"]["probe"]
+    assert probe["start"]["n"] == 20.0 and probe["start"]["ks"] == [0.25, 0.25, 0.25]
+    assert probe["gain"] < 0.05 or not probe["ks_significant"]
+    assert np.isfinite(probe["n"]) and probe["evaluations"] > 0
+    assert "albedo" in refl["scale_ambiguity"]
+    rep = _report(scene)
+    assert rep["reflectance"]["model"] == "lambert" and rep["material"]["model"] == "lambert"
+    assert "solve: reflectance lambert kd 1 1 1 (lambert:" in result.stdout
+
+
+def test_forced_blinn_phong_alternates_and_reports_rounds(solved, solved_copy):
+    """--reflectance blinn-phong fits even a diffuse scene: the rounds are recorded, ks falls towards
+    0 round by round (measured 0.2 -> 0.018 of kd after 7 rounds, n -> 1: the lobe turns into a
+    second diffuse term) and the relit error ends where the Lambertian one is (3.84 vs 3.83 %)."""
+    err = ok(invoke(solved_copy, "solve", "--resolution", RES, "--reflectance", "blinn-phong",
+                    "--ks", "0.2", "0.2", "0.2", "--shininess", "10"))
+    assert "solve: reflectance blinn-phong: start blinn-phong kd 1 1 1, ks 0.2, n 10" in err
+    assert "solve: reflectance round 1: blinn-phong" in err
+    refl = json.loads((solved_copy / "out" / "reflectance.json").read_text())
+    assert refl["mode"] == "blinn-phong" and refl["model"] == "blinn-phong"
+    rounds = refl["rounds"]
+    assert 3 <= len(rounds) <= 9 and rounds[0]["material"]["ks"] == [0.2, 0.2, 0.2]
+    assert all("lm" in r for r in rounds[1:])
+    assert refl["ks"][0] < 0.05 < rounds[1]["material"]["ks"][0]
+    for key in ("kd", "ks", "n"):
+        assert key in refl["uncertainty"]
+    fitted = _report(solved_copy)["relit"]["relative_rmse_vs_photo"]
+    assert fitted < 1.01 * _report(solved[0])["relit"]["relative_rmse_vs_photo"]
+
+
+def test_lambert_and_given_modes(solved_copy):
+    ok(invoke(solved_copy, "solve", "--resolution", RES, "--reflectance", "lambert"))
+    refl = json.loads((solved_copy / "out" / "reflectance.json").read_text())
+    assert refl["mode"] == "lambert" and len(refl["rounds"]) == 1 and refl["uncertainty"] is None
+    ok(invoke(solved_copy, "solve", "--resolution", RES, "--model", "blinn-phong", "--ks", "0.1", "0.1", "0.1",
+              "--shininess", "40"))
+    refl = json.loads((solved_copy / "out" / "reflectance.json").read_text())
+    assert refl["mode"] == "given" and refl["ks"] == [0.1, 0.1, 0.1] and refl["n"] == 40.0
+
+
+def test_compare_uses_the_fitted_reflectance(solved_copy):
+    """compare takes out/reflectance.json when no material option is given (and reruns if it changes)."""
+    fitted = {"model": "blinn-phong", "kd": [0.9, 0.9, 0.9], "ks": [0.1, 0.1, 0.1], "n": 25.0}
+    (solved_copy / "out" / "reflectance.json").write_text(json.dumps(fitted))
+    err = ok(invoke(solved_copy, "compare", "--resolution", RES))
+    assert "compare: material from reflectance.json (fitted by solve): blinn-phong, kd 0.9 0.9 0.9, ks 0.1, n 25" in err
+    assert '"blinn-phong"' in json.dumps(manifest(solved_copy)["stages"]["compare"])

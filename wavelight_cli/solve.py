@@ -121,7 +121,10 @@ class ReflectanceOptions:
         model = self.mode if self.mode in SPECULAR_MODELS else (
             material.model if material.model in SPECULAR_MODELS else "blinn-phong")
         ks = material.ks if "ks" in given and any(material.ks) else (DEFAULT_START_KS * float(np.mean(material.kd)),) * 3
-        n = material.shininess if "n" in given and material.shininess > 0 else DEFAULT_START_SHININESS
+        if "n" in given and not material.shininess > 0:
+            raise InputError(f"--shininess must be > 0 to start a fit, got {material.shininess:g}", None,
+                             f"use e.g. --shininess {DEFAULT_START_SHININESS:g}, or leave it out")
+        n = material.shininess if "n" in given else DEFAULT_START_SHININESS
         return replace(material, model=model, ks=tuple(ks), shininess=float(n))
 
 
@@ -279,6 +282,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines.cubemap import cross_image
 
     refl.check()
+    if refl.fits:
+        refl.start(material, given or set())
     camera, photo_path, photo, cache = _inputs(scene, vis_opts, opts)
     with cache.lock(lock_wait, console.say):
         vdec = visibility_stage(scene, vis_opts, console, force=False, lock_wait=lock_wait)
