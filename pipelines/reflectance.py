@@ -412,18 +412,17 @@ def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
 
 def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
               use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
-              max_rounds: int = 8, tol: float = ROUND_TOL, first=None, progress=None) -> Reflectance:
+              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None) -> Reflectance:
     """Light under `start` -> LM -> light -> ... until a round lowers the all-pixel RMSE by < tol.
 
-    `first` may give the round-0 light solution and context already solved under `start`. The
-    best round (lowest RMSE) is kept; with `max_rounds` LM fits at most.
+    The best round (lowest RMSE) is kept; at most `max_rounds` LM fits.
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
     if start.model not in SPECULAR_MODELS:
         raise ValueError(f"alternation needs a specular model, got {start.model!r}")
     ts = time.perf_counter()
-    sol, ctx = first if first is not None else solve_light(start)
+    sol, ctx = solve_light(start)
     rounds = [Round(0, start, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - ts)]
     kept = [(sol, ctx)]
     if progress:
@@ -436,7 +435,9 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
         fit = fit_specular(data, material)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
+        fitted_material = material
         material = _extrapolate(fitted, material)
+        jumped = material is not fitted_material
         ts = time.perf_counter()
         sol, ctx = solve_light(material)
         rounds.append(Round(k, material, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - ts, fit))
@@ -447,8 +448,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
         if rounds[k].fit_rmse < previous:
             best = k
             kept[:k] = [None] * k  # only the best round's light is kept (memory)
-        if previous - rounds[k].fit_rmse < tol * previous:
-            break
+        if previous - rounds[k].fit_rmse < tol * previous and not (jumped and rounds[k].fit_rmse >= previous):
+            break  # (a jump that overshot gets one more round: its LM corrects it)
     sol, ctx = kept[best]
     return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
                        f"alternation stopped after {len(rounds) - 1} LM round(s); round {best} has the lowest error",
