@@ -44,16 +44,19 @@ class Scene:
 
 @pytest.fixture(scope="module")
 def teapot(forward_render):
+    """`auto` on the teapot: about 3 min (5 specular normal-equation passes); the tests using it are slow."""
     scene = Scene(forward_render, "teapot_sun_phong", step=2)
     return scene, scene.select()
 
 
+@pytest.mark.slow
 def test_auto_picks_blinn_phong_on_the_glossy_teapot(teapot):
     _, result = teapot
     assert result.material.model == "blinn-phong", result.decision
     assert result.fit.ks_significant
 
 
+@pytest.mark.slow
 def test_teapot_ks_and_n_within_15_percent_from_the_default_start(teapot):
     """Measured (step 2): ks / kd 0.79 (truth 0.8), n 30.8 (truth 30), after 5 LM rounds."""
     scene, result = teapot
@@ -65,6 +68,7 @@ def test_teapot_ks_and_n_within_15_percent_from_the_default_start(teapot):
     assert np.ptp(m.kd) / np.mean(m.kd) < 0.05 * 3
 
 
+@pytest.mark.slow
 def test_teapot_specular_fit_relights_far_better_than_lambertian(teapot):
     """Relit error over all used pixels: measured 7.5 % with the fitted Blinn-Phong term against
     39.5 % for the best Lambertian light (the highlights cannot be explained by any light)."""

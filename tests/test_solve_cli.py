@@ -734,5 +734,5 @@ def test_compare_uses_the_fitted_reflectance(solved_copy):
     fitted = {"model": "blinn-phong", "kd": [0.9, 0.9, 0.9], "ks": [0.1, 0.1, 0.1], "n": 25.0}
     (solved_copy / "out" / "reflectance.json").write_text(json.dumps(fitted))
     err = ok(invoke(solved_copy, "compare", "--resolution", RES))
-    assert "compare: material from reflectance.json (fitted by solve): blinn-phong, kd 0.9 0.9 0.9, ks 0.1, n 25" in err
+    assert "compare: material from reflectance.json (fitted by solve): blinn-phong kd 0.9 0.9 0.9, ks 0.1, n 25" in err
     assert '"blinn-phong"' in json.dumps(manifest(solved_copy)["stages"]["compare"])

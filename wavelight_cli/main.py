@@ -285,9 +285,7 @@ def compare_cmd(obj, force, **kw):
     fitted = scene.out / "reflectance.json"
     if not given and fitted.is_file():
         material = stages.material_from_options(fitted, None, None, None, None)
-        obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {material.model}, kd "
-                           f"{' '.join(f'{v:.3g}' for v in material.kd)}"
-                           + (f", ks {material.ks[0]:.3g}, n {material.shininess:.3g}" if material.specular else ""))
+        obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {solve.material_text(material)}")
     opts = _solve_opts(kw)
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 

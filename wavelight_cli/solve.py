@@ -228,7 +228,7 @@ def _brightest(solution, cube) -> dict:
             "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": solution.light[i].tolist()}
 
 
-def _material_text(m) -> str:
+def material_text(m) -> str:
     kd = " ".join(f"{v:.3g}" for v in m.kd)
     if not m.specular:
         return f"{m.model} kd {kd}"
@@ -248,7 +248,7 @@ def _reflectance(problem: Problem, opts: SolveOptions, refl: ReflectanceOptions,
     def progress(r):
         held = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
         lm = "" if r.fit is None else f" (LM: {r.fit.evaluations} evaluations, {r.fit.seconds:.1f} s)"
-        console.say(f"solve: reflectance round {r.index}: {_material_text(r.material)}{lm}: "
+        console.say(f"solve: reflectance round {r.index}: {material_text(r.material)}{lm}: "
                     f"error {100 * r.fit_rmse:.3f} %{held}")
 
     use = ~problem.saturated
@@ -260,7 +260,7 @@ def _reflectance(problem: Problem, opts: SolveOptions, refl: ReflectanceOptions,
             return rf.fixed(Material(kd=material.kd), solve_light, "lambert", "lambert: chosen by --reflectance",
                             progress)
         start = refl.start(material, given)
-        console.say(f"solve: reflectance {refl.mode}: start {_material_text(start)}")
+        console.say(f"solve: reflectance {refl.mode}: start {material_text(start)}")
         if refl.mode == "auto":
             return rf.select(problem.data, problem.values, start, solve_light, use, problem.held_out, material.kd,
                              refl.min_specular_gain, refl.max_rounds, progress=progress)
@@ -356,7 +356,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         console.result(f"solve: {sol.basis}, {sol.n_coefficients} coefficients ({kept}): relit error {100 * versus['relative_rmse_vs_photo']:.2f} % over "
                        f"{versus['compared_pixels']} pixels{held}; brightest direction theta "
                        f"{b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> {cache.relative(outputs[0])}")
-        console.result(f"solve: reflectance {_material_text(material)} ({result.decision})")
+        console.result(f"solve: reflectance {material_text(material)} ({result.decision})")
         for p in outputs:
             console.say(f"solve: wrote {cache.relative(p)}")
     return d
