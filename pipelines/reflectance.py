@@ -7,12 +7,13 @@ fixed, and solves the light again. Here:
   depend on the parameters, over the texels that carry light (a solved light is exactly zero
   almost everywhere a sun dominates, so this is cheap): the diffuse shading D L (kd = 1) and, per
   pixel and lit texel, the factor A and the lobe cosine c of `render.specular_factors`.
-* `fit_specular` fits kd (RGB), ks (grey: highlights carry the light's colour, which is what makes
-  kd's colour observable) and log n by `scipy.optimize.least_squares(method="lm")` with an
-  analytic Jacobian:  I_c = kd_c (D L)_c + ks norm(n) sum_i A_i c_i^n L_ic.
-  Far-off starts that LM cannot bring home (n off by 10x, a lobe too narrow to see any
-  highlight) are caught: a scan over n (the best kd, ks >= 0 for each n are a small NNLS) gives a
-  new start. Uncertainties come from the Jacobian (conditional on the light).
+* `fit_specular` fits kd (RGB), ks (RGB) and log n by `scipy.optimize.least_squares(method="lm")`
+  with an analytic Jacobian:  I_c = kd_c (D L)_c + ks_c norm(n) sum_i A_i c_i^n L_ic; then ks is
+  made grey (highlights carry the light's colour) by moving its colour into the light, which is
+  what makes kd's colour observable (`SpecularFit`). Starts that LM cannot bring home (n far
+  off, a lobe too narrow to see any highlight, a worse local optimum) are caught by a scan over
+  n (the best kd, ks >= 0 for each n are a small NNLS) that gives a new start. Uncertainties come
+  from the Jacobian (conditional on the light).
 * `alternate` runs light -> LM -> light ... until the objective stops improving; `select` decides
   between the Lambertian model and a specular one on held-out pixels (`auto`).
 
@@ -54,6 +55,7 @@ class SpecularData:
         pairs with c = 0 have A = 0 and log_c = -80, so c^n underflows to 0 without infinities).
     light : (K, 3) the lit texels' radiance.
     photo : (P, 3); fit : (P,) bool, True for fitted pixels, False for held-out ones.
+    rows : (P,) indices of these pixels in the visibility data.
     """
 
     model: str
@@ -65,6 +67,7 @@ class SpecularData:
     fit: np.ndarray
     n_pixels_available: int
     lit_texels: int
+    rows: np.ndarray
 
     def specular(self, shininess: float, derivative: bool = False):
         """(P, 3) sum_i A_i c_i^n L_i norm(n) and, if asked, its derivative with respect to log n."""
@@ -134,17 +137,22 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     A = np.empty((len(rows), len(lit)), np.float32)
     log_c = np.empty((len(rows), len(lit)), np.float32)
     lambert = Material()
-    for a in range(0, len(rows), _CHUNK):
-        r = rows[a:a + _CHUNK]
-        V = vis.block(slice(int(r[0]), int(r[-1]) + 1))[r - r[0]]
+    out = 0
+    for first in range(0, P, _CHUNK):  # blocks of stored rows, keeping the selected ones
+        r = rows[(rows >= first) & (rows < first + _CHUNK)]
+        if len(r) == 0:
+            continue
+        V = vis.block(slice(first, min(P, first + _CHUNK)))[r - first]
         D, _ = transport(V, s.normal[r], s.view[r], cube, lambert)
-        diffuse[a:a + len(r)] = D.astype(np.float64) @ L
+        k = slice(out, out + len(r))
+        diffuse[k] = D.astype(np.float64) @ L
         Ab, c = specular_factors(V[:, lit], s.normal[r], s.view[r], cube, model, lit)
-        A[a:a + len(r)] = Ab
+        A[k] = Ab
         with np.errstate(divide="ignore"):
-            log_c[a:a + len(r)] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
+            log_c[k] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
+        out += len(r)
     return SpecularData(model, diffuse, A, log_c, L[lit], np.asarray(photo, np.float64)[rows],
-                        ~held_out[rows], int(use.sum()), len(lit))
+                        ~held_out[rows], int(use.sum()), len(lit), rows)
 
 
 @dataclass

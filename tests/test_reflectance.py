@@ -81,6 +81,20 @@ def test_specular_data_reproduces_render(glossy):
         np.testing.assert_allclose(data.predict(m.kd, 0.4, n), expected, rtol=2e-4, atol=1e-6 * expected.max())
 
 
+def test_specular_data_keeps_to_its_memory_budget(glossy):
+    """Above max_pairs (pixels x lit texels) an evenly spread subset of the pixels is used, with
+    exactly the values the full data has for them."""
+    full = glossy.data()
+    budget = full.lit_texels * 1000
+    small = rf.specular_data(glossy.vis, glossy.photo, glossy.light, "blinn-phong", held_out=glossy.held,
+                             max_pairs=budget)
+    assert 990 <= len(small.rows) <= 1000 and small.A.size <= budget
+    assert np.all(np.diff(small.rows) > 0) and small.rows[-1] > 0.99 * len(full.rows)  # spread over all
+    np.testing.assert_array_equal(small.A, full.A[small.rows])
+    np.testing.assert_allclose(small.diffuse, full.diffuse[small.rows], rtol=1e-12)
+    np.testing.assert_array_equal(small.fit, full.fit[small.rows])
+
+
 @pytest.mark.parametrize("model", ["blinn-phong", "phong", "phong-classic"])
 def test_jacobian_in_log_n_matches_finite_differences(glossy, model):
     data = glossy.data(model=model)
