@@ -26,7 +26,7 @@ demo: $(STAMP)
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) compare
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) status
 	@echo "results: $(DEMO)/$(SCENE)/out (light_latlong.exr, light_cross.png, relit.png, residual.png,"
-	@echo "         solve_report.json, compare.md, compare.png); the true light: $(DEMO)/$(SCENE)/truth"
+	@echo "         reflectance.json, solve_report.json, compare.md, compare.png); the true light: $(DEMO)/$(SCENE)/truth"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
