@@ -106,8 +106,8 @@ def test_synthetic_views_recover_the_intrinsics():
 
 
 @pytest.mark.xfail(strict=True, reason="issue 5 in progress: the fitted distortion is off the true mapping by "
-                   "up to 0.6 px near the image corners (goal 0.1 px): the random views leave the corners "
-                   "unobserved and k2/k3 trade off there (40 views: 0.36 px); the view set must cover them")
+                   "up to 0.6 px near the image corners (goal 0.1 px). k2 and k3 trade off there; 27 views "
+                   "placed to cover the corners still give 0.6-1.0 px, so coverage alone is not the cause")
 def test_synthetic_views_recover_the_distortion_mapping():
     """The fitted distortion maps every direction seen in the image within 0.1 px of the truth."""
     result = _synthetic_calibration()
