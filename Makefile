@@ -22,11 +22,15 @@ demo: $(STAMP)
 	rm -rf $(DEMO)/$(SCENE)
 	mkdir -p $(DEMO)
 	cp -r sample_data/$(SCENE) $(DEMO)/$(SCENE)
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) calibrate --pattern acircles --pattern-size 4x11 --spacing 10mm
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) register
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) solve
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) compare
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) status
-	@echo "results: $(DEMO)/$(SCENE)/out (light_latlong.exr, light_cross.png, relit.png, residual.png,"
-	@echo "         reflectance.json, solve_report.json, compare.md, compare.png); the true light: $(DEMO)/$(SCENE)/truth"
+	@echo "results: $(DEMO)/$(SCENE)/camera.json, pose.json (calibrated, registered) and $(DEMO)/$(SCENE)/out"
+	@echo "         (calibrate/*_overlay.png, register_overlay.png, light_latlong.exr, light_cross.png, relit.png,"
+	@echo "         residual.png, reflectance.json, solve_report.json, compare.md, compare.png)"
+	@echo "truth (camera, pose, light, material): $(DEMO)/$(SCENE)/truth"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

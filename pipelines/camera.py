@@ -89,6 +89,29 @@ def _edges(hit: np.ndarray, depth: np.ndarray, face_normal_dot: np.ndarray, tole
     return edge
 
 
+def _cast(camera: Camera, pose: Pose, mesh: Mesh, backend):
+    """One ray per pixel centre: rows, cols, origins, directions, hit distance, face, barycentrics,
+    the (H, W) hit mask and the (H, W) silhouette / depth-jump edges."""
+    H, W = camera.height, camera.width
+    rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    rows, cols = rows.ravel(), cols.ravel()
+    o, d = pixel_rays(camera, pose, rows, cols)
+    t, face, bu, bv = backend.intersect(o, d)
+    hit = (face >= 0).reshape(H, W)
+    depth = np.where(hit.ravel(), t, np.inf).reshape(H, W)
+    ng = mesh.face_normals[np.where(face >= 0, face, 0)]
+    cos_view = np.abs(np.einsum("ij,ij->i", ng, -d)).reshape(H, W)
+    pixel_angle = 1.0 / max(camera.fx, camera.fy)
+    edge = _edges(hit, depth, cos_view, tolerance=4.0 * pixel_angle)
+    return rows, cols, o, d, t, face, bu, bv, hit, edge
+
+
+def mesh_outline(camera: Camera, pose: Pose, mesh: Mesh, backend) -> np.ndarray:
+    """(H, W) bool: pixels on the mesh's silhouette or on a depth jump, as the pose puts them
+    (for overlays that show how well the mesh sits on the photo)."""
+    return _cast(camera, pose, mesh, backend)[-1]
+
+
 def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndarray | None = None,
                   edge_margin: int = 1, mask_path=None) -> tuple[PixelSamples, dict]:
     """Cast one ray per pixel centre and keep the used pixels.
@@ -105,21 +128,11 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
     if np.all(z_cam <= 0):
         raise InputError("the pose puts the whole mesh behind the camera", None,
                          "check pose.json (world->camera, x_cam = R X + t) or rerun wavelight register")
-    rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
-    rows, cols = rows.ravel(), cols.ravel()
-    o, d = pixel_rays(camera, pose, rows, cols)
-    t, face, bu, bv = backend.intersect(o, d)
-    hit = (face >= 0).reshape(H, W)
+    rows, cols, o, d, t, face, bu, bv, hit, edge = _cast(camera, pose, mesh, backend)
     if not hit.any():
         raise InputError("no pixel of the image sees the mesh", None,
                          "check pose.json and camera.json (does the mesh project into the image?)")
-    depth = np.where(hit.ravel(), t, np.inf).reshape(H, W)
     fn = mesh.face_normals
-    f_safe = np.where(face >= 0, face, 0)
-    ng = fn[f_safe]
-    cos_view = np.abs(np.einsum("ij,ij->i", ng, -d)).reshape(H, W)
-    pixel_angle = 1.0 / max(camera.fx, camera.fy)
-    edge = _edges(hit, depth, cos_view, tolerance=4.0 * pixel_angle)
     if edge_margin > 0:
         edge = ndimage.binary_dilation(edge, iterations=edge_margin)
     used = hit & ~edge if edge_margin >= 0 else hit

@@ -152,6 +152,28 @@ def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
                        linear_source=linear_source, bit_depth=depth)
 
 
+def read_grey8(path: str | Path) -> np.ndarray:
+    """A photo as (H, W) uint8 grey levels in its display encoding (what a target detector wants):
+    8-bit files as stored, 16-bit scaled down, float files clipped to [0, 1] and sRGB-encoded."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    buf = _open(path)
+    base = str(buf.spec().format).lower()
+    if any(f in base for f in FLOAT_FORMATS):
+        px = _pixels(buf, path, oiio.FLOAT).astype(np.float64)
+        if not np.all(np.isfinite(px)):
+            raise InputError("image has NaN or infinite pixels", path, "re-export the photo")
+        px = linear_to_srgb(np.clip(px, 0.0, 1.0)) * 255.0
+    else:
+        px = _pixels(buf, path, oiio.UINT8).astype(np.float64)
+    nch = px.shape[2]
+    if nch in (2, 4):
+        px = px[..., : nch - 1]
+    grey = px[..., 0] if px.shape[2] == 1 else px[..., :3] @ np.array([0.299, 0.587, 0.114])
+    return np.clip(np.round(grey), 0, 255).astype(np.uint8)
+
+
 def read_mask(path: str | Path) -> np.ndarray:
     """Read a mask image: (H, W) bool, True where any channel is above half its range."""
     import OpenImageIO as oiio

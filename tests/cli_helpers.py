@@ -34,9 +34,15 @@ def wavelight_exe() -> str:
     return found
 
 
-def copy_sample(dst: Path) -> Path:
-    """A fresh copy of the sample scene (without any cache or results it may carry)."""
+def copy_sample(dst: Path, calibrated: bool = True) -> Path:
+    """A fresh copy of the sample scene (without any cache or results it may carry).
+
+    calibrated: put the true camera.json and pose.json (truth/) in the scene folder, as if calibrate
+    and register had run exactly; False leaves them out (the demo's starting point)."""
     shutil.copytree(SAMPLE, dst, ignore=shutil.ignore_patterns(".wavelight", "out", "scene.toml"))
+    if calibrated:
+        for name in ("camera.json", "pose.json"):
+            shutil.copy(dst / "truth" / name, dst / name)
     return dst
 
 

@@ -193,6 +193,18 @@ class SceneCache:
         self.dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.manifest_path, data)
 
+    def guard_user_file(self, stage: str, path: Path, force: bool, option: str = "--force") -> None:
+        """Refuse to overwrite a scene file (camera.json, pose.json) that `stage` did not write as it
+        is now (the user wrote or edited it by hand), unless forced."""
+        path = Path(path)
+        if force or not path.is_file():
+            return
+        rec = self.record_of(stage) or {}
+        if rec.get("outputs", {}).get(self.relative(path)) == file_digest(path):
+            return
+        raise InputError(f"exists and was not written by wavelight {stage} as it is now (written or edited by hand)",
+                         path, f"move it away, or pass {option} to replace it")
+
     # -- locking --------------------------------------------------------------------------------
     @contextlib.contextmanager
     def lock(self, wait_seconds: float = 600.0, say=print):

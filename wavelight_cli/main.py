@@ -137,6 +137,60 @@ def _command(name, **kwargs):
     return deco
 
 
+@_command("calibrate")
+@click.option("--images", default=None,
+              help="Photos of the target: a glob relative to the scene folder (default: every photo in calib/).")
+@click.option("--pattern", default="acircles", show_default=True,
+              type=click.Choice(["acircles", "circles", "chessboard"]),
+              help="Target: OpenCV's asymmetric circle grid (the paper's dots), a symmetric circle grid, or a "
+                   "chessboard.")
+@click.option("--pattern-size", default="4x11", show_default=True,
+              help="COLSxROWS as OpenCV counts them: dots per row x rows (circle grids), inner corners (chessboard).")
+@click.option("--spacing", default=None,
+              help="Dot or square spacing with a unit (20mm, 2cm, 0.02m, 1in; a bare number is mm). acircles: half "
+                   "the distance of two dots in a row (OpenCV's convention). The intrinsics do not depend on it.")
+@click.option("--fix-k3", is_flag=True, help="Fix the 6th-order radial term k3 at 0 (lenses with little distortion).")
+@click.option("--zero-tangent", is_flag=True, help="Fix the tangential distortion p1, p2 at 0.")
+@click.option("--fix-aspect", is_flag=True, help="Fix fx/fy (square pixels).")
+@click.option("--outlier-factor", default=5.0, show_default=True, type=float,
+              help="Drop a photo whose reprojection RMS exceeds this many times the median photo's (and 2 px), "
+                   "then calibrate again.")
+@click.option("--force", is_flag=True, help="Rerun even if up to date; replace a hand-written camera.json.")
+@click.pass_obj
+def calibrate_cmd(obj, images, pattern, pattern_size, spacing, fix_k3, zero_tangent, fix_aspect, outlier_factor,
+                  force):
+    """Camera intrinsics and lens distortion from photos of a target -> camera.json, out/calibrate/*_overlay.png."""
+    from .calibrate import CalibrateOptions, calibrate_stage
+
+    scene = scene_folder(obj["scene"])
+    opts = CalibrateOptions(images, pattern, pattern_size, spacing, fix_k3, zero_tangent, fix_aspect, outlier_factor)
+    calibrate_stage(scene, opts, obj["console"], force, obj["lock_wait"])
+
+
+@_command("register")
+@click.option("--method", default="sqpnp", show_default=True, type=click.Choice(["sqpnp", "iterative"]),
+              help="solvePnP solver for the start (SQPnP is global; iterative is OpenCV's DLT/homography + LM); "
+                   "Levenberg-Marquardt refines either.")
+@click.option("--ransac", default="auto", show_default=True, type=click.Choice(["auto", "on", "off"]),
+              help="RANSAC against wrong clicks: auto = when a residual exceeds --outlier-threshold.")
+@click.option("--outlier-threshold", type=float, default=None,
+              help="Residual (px) above which a point is an outlier [default: 0.5 % of the image diagonal, >= 3 px].")
+@click.option("--max-rms", type=float, default=None,
+              help="Fail when the inliers' RMS exceeds this (px) [default: half the outlier threshold].")
+@click.option("--max-mesh-distance", type=float, default=0.01, show_default=True,
+              help="Warn about 3D points farther than this fraction of the mesh's size from its surface.")
+@click.option("--force", is_flag=True, help="Rerun even if up to date; replace a hand-written pose.json.")
+@click.pass_obj
+def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, force):
+    """The mesh's pose from 2D-3D correspondences (correspondences.csv + camera.json) -> pose.json,
+    out/register_overlay.png."""
+    from .register import RegisterOptions, register_stage
+
+    scene = scene_folder(obj["scene"])
+    opts = RegisterOptions(method, ransac, outlier_threshold, max_rms, max_mesh_distance)
+    register_stage(scene, opts, obj["console"], force, obj["lock_wait"])
+
+
 @_command("visibility")
 @visibility_options
 @click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
