@@ -202,6 +202,15 @@ def _uncertainty(residuals, J, R, t):
     return float(rot), float(np.sqrt(np.linalg.eigvalsh(cc).max()))
 
 
+def reprojection(R: np.ndarray, t: np.ndarray, uv: np.ndarray, xyz: np.ndarray, K: np.ndarray,
+                 dist: np.ndarray) -> np.ndarray:
+    """(n, 2) residuals projected - observed (pixels) of a pose."""
+    import cv2
+
+    rvec = cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+    return _project(np.ascontiguousarray(xyz, np.float64), rvec, np.asarray(t, np.float64), K, dist)[0] - uv
+
+
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     """Angle of the rotation between two rotation matrices, degrees."""
     c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
@@ -246,3 +255,183 @@ def _point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
         s = np.clip(np.einsum("ij,ij->i", p - u, e) / np.where(ee > 0, ee, 1.0), 0.0, 1.0)
         best = np.minimum(best, np.linalg.norm(p - (u + s[:, None] * e), axis=1))
     return best
+
+
+# -- refinement against the photo's edges ---------------------------------------------------------
+
+@dataclass
+class PhotoEdges:
+    """Edge points of a photo at sub-pixel positions with their unit normals (the grey-level
+    gradient direction), and a tree to find the nearest ones."""
+
+    points: np.ndarray  # (m, 2) u, v
+    normals: np.ndarray  # (m, 2)
+    shape: tuple[int, int]
+
+    def __post_init__(self):
+        from scipy.spatial import cKDTree
+
+        self.tree = cKDTree(self.points) if len(self.points) else None
+
+    def distance(self, uv: np.ndarray, cap: float) -> np.ndarray:
+        """Distance from each point to the tangent line of its nearest edge point (px), at most `cap`."""
+        if self.tree is None:
+            return np.full(len(uv), cap)
+        d, i = self.tree.query(uv, distance_upper_bound=2 * cap)
+        ok = np.isfinite(d)
+        out = np.full(len(uv), cap)
+        j = i[ok]
+        out[ok] = np.abs(np.einsum("ij,ij->i", uv[ok] - self.points[j], self.normals[j]))
+        return np.minimum(out, cap)
+
+
+def photo_edges(image: np.ndarray, low: float = 30.0, high: float = 90.0) -> PhotoEdges:
+    """Edges of a linear RGB photo: Canny on the tone-mapped grey image (hysteresis thresholds
+    `low`/`high` in 8-bit levels), each edge pixel moved to the peak of the gradient magnitude along
+    the gradient (a parabola through three samples), so that edges are located to a fraction of a
+    pixel and the choice of pixel Canny makes on either side of a step does not bias them."""
+    import cv2
+    from scipy import ndimage
+
+    from .images import tonemap
+
+    grey = np.round(tonemap(image) @ np.array([0.299, 0.587, 0.114]) * 255.0).astype(np.uint8)
+    blurred = cv2.GaussianBlur(grey, (3, 3), 0)
+    edges = cv2.Canny(blurred, low, high)
+    g = blurred.astype(np.float64)
+    gx = cv2.Sobel(g, cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_64F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    v, u = np.nonzero(edges)
+    n = np.column_stack([gx[v, u], gy[v, u]])
+    norm = np.linalg.norm(n, axis=1)
+    keep = norm > 0
+    u, v, n = u[keep], v[keep], n[keep] / norm[keep, None]
+    m0 = mag[v, u]
+    mp = ndimage.map_coordinates(mag, [v + n[:, 1], u + n[:, 0]], order=1, mode="nearest")
+    mm = ndimage.map_coordinates(mag, [v - n[:, 1], u - n[:, 0]], order=1, mode="nearest")
+    curv = mm - 2 * m0 + mp
+    delta = np.where(curv < 0, 0.5 * (mm - mp) / np.where(curv < 0, curv, -1.0), 0.0)
+    delta = np.clip(delta, -0.5, 0.5)
+    pts = np.column_stack([u, v]).astype(np.float64) + delta[:, None] * n
+    return PhotoEdges(pts, n, grey.shape)
+
+
+def outline_points(vertices: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray, backend,
+                   spacing: float) -> np.ndarray:
+    """3D points every `spacing` (world units) along the mesh's outline as the camera (R, t) sees
+    it: the contour generator (edges between a face turned towards the camera and one turned
+    away) and the open boundary, kept where the camera sees them (a ray from the camera reaches them)."""
+    c = -R.T @ t
+    tri = vertices[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    front = np.einsum("ij,ij->i", normal, tri[:, 0] - c) < 0
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    face_of = np.tile(np.arange(len(faces)), 3)
+    edges = np.sort(edges, axis=1)
+    key = edges[:, 0] * len(vertices) + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, edges, face_of = key[order], edges[order], face_of[order]
+    _, start, count = np.unique(key, return_index=True, return_counts=True)
+    boundary = start[count == 1]
+    pair = start[count == 2]
+    contour = pair[front[face_of[pair]] != front[face_of[pair + 1]]]
+    chosen = edges[np.concatenate([boundary, contour])]
+    a, b = vertices[chosen[:, 0]], vertices[chosen[:, 1]]
+    n = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing).astype(np.int64))
+    which = np.repeat(np.arange(len(chosen)), n)
+    s = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n) + 0.5) / np.repeat(n, n)
+    pts = a[which] + s[:, None] * (b - a)[which]
+    if len(pts) == 0:
+        return pts
+    d = pts - c
+    dist = np.linalg.norm(d, axis=1)
+    hit_t, face, _, _ = backend.intersect(np.broadcast_to(c, pts.shape).copy(), d / dist[:, None])
+    scale = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    return pts[(face < 0) | (hit_t >= dist - 2e-3 * scale)]
+
+
+@dataclass
+class EdgeRefinement:
+    R: np.ndarray
+    t: np.ndarray
+    accepted: bool
+    reason: str
+    outline_points: int
+    aligned_before: float  # fraction of outline samples within 1 px of a photo edge
+    aligned_after: float
+    rms_clicks_before: float  # reprojection RMS of the inlier clicks, px
+    rms_clicks_after: float
+    rotation_change_deg: float
+    translation_change: float  # |t' - t| / |t|
+
+
+def refine_with_edges(r: Registration, uv: np.ndarray, xyz: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                      vertices: np.ndarray, faces: np.ndarray, backend, edges: PhotoEdges,
+                      schedule: tuple[float, ...] = (8.0, 4.0, 2.0), max_click_rms: float | None = None
+                      ) -> EdgeRefinement:
+    """Refine a pose so that the mesh's outline falls on the photo's edges while the clicked points
+    stay put (16 clicks at 0.3 px leave ~0.3 deg of rotation undetermined; a few hundred outline
+    samples pin it down).
+
+    Minimises sum soft_l1(d_k) + sum |click residual / sigma|^2 over the 6 pose parameters, with
+    d_k the distance (px, capped at the schedule's value, which shrinks 8 -> 4 -> 2 px over the
+    rounds) from outline sample k to the nearest photo edge, and sigma the clicks' own RMS per
+    coordinate. Edges of shadows and highlights and outline parts without image contrast are
+    outliers the robust loss and the cap absorb. The result is kept only if the clicks' RMS stays
+    below `max_click_rms` and more of the outline lies on edges than before.
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    uv = np.ascontiguousarray(uv, np.float64)
+    xyz = np.ascontiguousarray(xyz, np.float64)
+    use = r.inliers
+    H, W = edges.shape
+    sigma = max(r.rms / np.sqrt(2.0), 0.1)
+    x0 = np.concatenate([cv2.Rodrigues(r.R)[0].ravel(), r.t])
+    x = x0.copy()
+    centre = np.mean(xyz[use], axis=0)
+
+    def outline(x):
+        R = cv2.Rodrigues(x[:3])[0]
+        depth = float(np.linalg.norm(R @ centre + x[3:]))
+        pts = outline_points(vertices, faces, R, x[3:], backend, 0.7 * depth / K[0, 0])
+        if len(pts) == 0:
+            return pts
+        p = _project(pts, x[:3], x[3:], K, dist)[0]
+        return pts[(p[:, 0] > 2) & (p[:, 0] < W - 3) & (p[:, 1] > 2) & (p[:, 1] < H - 3)]
+
+    def aligned(x, pts):
+        p = _project(pts, x[:3], x[3:], K, dist)[0]
+        return float(np.mean(edges.distance(p, 2.0) <= 1.0))
+
+    pts = outline(x)
+    if len(pts) < 50:
+        return EdgeRefinement(r.R, r.t, False, f"too little outline in the image ({len(pts)} samples)", len(pts),
+                              float("nan"), float("nan"), r.rms, r.rms, 0.0, 0.0)
+    before = aligned(x, pts)
+    for cap in schedule:
+        pts = outline(x)
+
+        def residual(x):
+            p = _project(pts, x[:3], x[3:], K, dist)[0]
+            e = edges.distance(p, cap)
+            q = (_project(xyz[use], x[:3], x[3:], K, dist)[0] - uv[use]).ravel() / sigma
+            return np.concatenate([e, q])
+
+        x = least_squares(residual, x, loss="soft_l1", f_scale=1.0, diff_step=1e-7, max_nfev=200).x
+    pts = outline(x)
+    after = aligned(x, pts)
+    R = cv2.Rodrigues(x[:3])[0]
+    t = x[3:].copy()
+    rms_after = float(np.sqrt(np.mean(np.sum((_project(xyz[use], x[:3], t, K, dist)[0] - uv[use]) ** 2, axis=1))))
+    limit = max_click_rms if max_click_rms is not None else 2.0 * max(r.rms, 0.5)
+    change = (rotation_angle_deg(R, r.R), float(np.linalg.norm(t - r.t) / np.linalg.norm(r.t)))
+    if rms_after > limit:
+        return EdgeRefinement(r.R, r.t, False, f"the clicks would move by {rms_after:.2f} px RMS (> {limit:.2f})",
+                              len(pts), before, after, r.rms, rms_after, *change)
+    if after <= before:
+        return EdgeRefinement(r.R, r.t, False, "the outline does not fit the photo's edges better", len(pts),
+                              before, after, r.rms, rms_after, *change)
+    return EdgeRefinement(R, t, True, "", len(pts), before, after, r.rms, rms_after, *change)

@@ -149,3 +149,68 @@ def test_distance_to_mesh_is_exact():
                   [5.0, 4.0, 5.0]])  # beside the middle of the long triangle, far from its vertices
     d = reg.distance_to_mesh(p, v, f)
     np.testing.assert_allclose(d, [0.25, 1.0, 5.0, 1.0], atol=1e-9)
+
+
+# -- refinement against the photo's edges -----------------------------------------------------------
+
+def _edges_setup(name):
+    from pipelines import images, raycast
+    from pipelines.scene import load_mesh
+
+    d = SCENES / name
+    mesh = load_mesh(d / "mesh.ply")
+    return mesh, raycast.make_backend(mesh), images.read_image(d / "image.exr").pixels
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_edge_refinement_meets_the_pose_goal(name):
+    """The clicks alone leave 0.30-0.39 deg of rotation error (their noise floor); fitting the mesh's
+    outline to the photo's edges as well brings it under the issue's 0.2 deg and keeps |t| within
+    0.5 %. Measured: 0.15 / 0.09 / 0.05 deg, |t| 0.12 / 0.14 / 0.30 %."""
+    camera, pose, uv, xyz = load(name)
+    mesh, backend, photo = _edges_setup(name)
+    r = reg.register(uv, xyz, camera.K, camera.dist_coeffs)
+    e = reg.refine_with_edges(r, uv, xyz, camera.K, camera.dist_coeffs, mesh.vertices, mesh.faces, backend,
+                              reg.photo_edges(photo))
+    assert e.accepted, e.reason
+    rot, trans = reg.rotation_angle_deg(e.R, pose.R), np.linalg.norm(e.t - pose.t) / np.linalg.norm(pose.t)
+    assert rot < 0.2 and trans < 0.005, (rot, trans)
+    assert rot < 0.6 * reg.rotation_angle_deg(r.R, pose.R)  # better than the clicks alone
+    assert e.aligned_after > e.aligned_before and e.rms_clicks_after < 1.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_edge_refinement_after_ransac_with_twenty_percent_outliers(name):
+    camera, pose, uv, xyz = load(name)
+    mesh, backend, photo = _edges_setup(name)
+    rng = np.random.default_rng(5)
+    bad = rng.choice(len(uv), 3, replace=False)
+    uv2 = uv.copy()
+    uv2[bad] += rng.uniform(15, 60, size=(3, 2)) * rng.choice([-1, 1], size=(3, 2))
+    r = reg.register(uv2, xyz, camera.K, camera.dist_coeffs, threshold=reg.default_threshold(camera.width,
+                                                                                            camera.height))
+    assert sorted(np.flatnonzero(~r.inliers)) == sorted(bad)
+    e = reg.refine_with_edges(r, uv2, xyz, camera.K, camera.dist_coeffs, mesh.vertices, mesh.faces, backend,
+                              reg.photo_edges(photo))
+    assert e.accepted, e.reason
+    rot, trans = reg.rotation_angle_deg(e.R, pose.R), np.linalg.norm(e.t - pose.t) / np.linalg.norm(pose.t)
+    assert rot < 0.2 and trans < 0.005, (rot, trans)
+
+
+def test_edge_refinement_cannot_drag_the_pose_away_from_the_clicks():
+    """A black photo has no edges: refused with the reason, the clicks' pose kept. A photo of pure
+    noise has edges everywhere: the clicks hold the pose (measured: it moves 0.008 deg, the clicks'
+    RMS 0.43 px as before)."""
+    camera, pose, uv, xyz = load("teapot_sun_phong")
+    mesh, backend, photo = _edges_setup("teapot_sun_phong")
+    noise = np.random.default_rng(0).uniform(0, 1, size=photo.shape).astype(np.float32)
+    r = reg.register(uv, xyz, camera.K, camera.dist_coeffs)
+    blank = reg.refine_with_edges(r, uv, xyz, camera.K, camera.dist_coeffs, mesh.vertices, mesh.faces, backend,
+                                  reg.photo_edges(np.zeros_like(photo)))
+    assert not blank.accepted and np.array_equal(blank.R, r.R)
+    e = reg.refine_with_edges(r, uv, xyz, camera.K, camera.dist_coeffs, mesh.vertices, mesh.faces, backend,
+                              reg.photo_edges(noise))
+    if e.accepted:  # the clicks hold the pose: it may move only within their noise
+        assert e.rotation_change_deg < 2 * r.sigma_rotation_deg and e.rms_clicks_after < 2 * r.rms
+    else:
+        assert np.array_equal(e.R, r.R) and e.reason

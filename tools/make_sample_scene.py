@@ -111,7 +111,9 @@ def main():
     pose = scene.read_pose(out / "pose.json")
     mesh = scene.load_mesh(out / "mesh.obj")
     backend = raycast.make_backend(mesh)
-    samples, _ = cam.pixel_samples(camera, pose, mesh, backend, None, edge_margin=0)
+    # edge_margin=-1: every pixel whose centre ray hits the mesh, silhouettes included (a photo has no
+    # black ring around objects; the solver drops mixed pixels itself)
+    samples, _ = cam.pixel_samples(camera, pose, mesh, backend, None, edge_margin=-1)
     cube = cubemap.CubeMap(RENDER_R)
     vis = visibility.compute_visibility(backend, samples, cube)
     env = light_from_hdr(args.envmap)

@@ -81,6 +81,41 @@ def find_photos(scene: SceneFiles, pattern: str | None) -> list[Path]:
     return sorted(files)
 
 
+def calibration_warnings(result, points: list[np.ndarray], opts: CalibrateOptions) -> list[str]:
+    """What a careful user should know about a calibration: parameters the photos do not
+    determine, too few photos, image regions the target never reached."""
+    import cv2
+
+    w, h = result.image_size
+    std, dist = result.std, result.dist
+    out = []
+    if len(points) < 8:
+        out.append(f"only {len(points)} photos used: 10-20 at varied tilts give stable intrinsics")
+    if std[2] > 0.01 * w or std[3] > 0.01 * h:
+        out.append(f"the principal point is poorly determined (cx +- {std[2]:.1f}, cy +- {std[3]:.1f} px): "
+                   "add photos with the target tilted 30-50 degrees in different directions")
+    names = ("k1", "k2", "p1", "p2", "k3")
+    loose = [n for n, v, s in zip(names, dist, std[4:9]) if s > 0 and s > abs(v)]
+    if loose:
+        hint = []
+        if "k3" in loose and not opts.fix_k3:
+            hint.append("--fix-k3")
+        if ("p1" in loose or "p2" in loose) and not opts.zero_tangent:
+            hint.append("--zero-tangent")
+        out.append(f"{', '.join(loose)} not determined by these photos (uncertainty larger than the value)"
+                   + (f": consider {' '.join(hint)}" if hint else ""))
+    cover = np.zeros((h, w), np.uint8)
+    for p in points:
+        cv2.fillConvexPoly(cover, cv2.convexHull(np.round(p).astype(np.int32)), 1)
+    corners = [cover[:h // 4, :w // 4], cover[:h // 4, -(w // 4):], cover[-(h // 4):, :w // 4],
+               cover[-(h // 4):, -(w // 4):]]
+    empty = sum(int(not c.any()) for c in corners)
+    if empty:
+        out.append(f"the target never reached {empty} of the image's 4 corner regions: the lens distortion there "
+                   "is extrapolated; add photos with the target near the corners")
+    return out
+
+
 def _overlay(grey: np.ndarray, found, projected, colour_ok: bool, text: str) -> np.ndarray:
     """Display image: the photo, detected points in OpenCV's ordered colours, the model's
     reprojection as red crosses, and a caption."""
@@ -155,6 +190,7 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
         rejected = {photos[ok[i]].name: why for i, why in result.rejected.items()}
         per_view = {photos[i].name: round(float(r), 4) for i, r in zip(used, result.per_view_rms)}
         K, dist, std = result.K, result.dist, result.std
+        warnings = calibration_warnings(result, [points[i] for i in used], opts)
         camera = {
             "width": width, "height": height, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
             "cx": float(K[0, 2]), "cy": float(K[1, 2]), "dist": [float(x) for x in dist],
@@ -167,6 +203,8 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
                 "pattern": target.pattern, "pattern_size": [target.cols, target.rows],
                 "spacing_m": opts.spacing_m, "fix_k3": opts.fix_k3, "zero_tangent": opts.zero_tangent,
                 "fix_aspect": opts.fix_aspect, "outlier_factor": opts.outlier_factor,
+                "dot_radius_m": (result.dot_radius if opts.spacing_m else None),
+                "dot_centroid_correction_rms_px": result.dot_bias_px, "warnings": warnings,
                 "note": "pixel (0,0)'s centre is at (u, v) = (0, 0); dist = k1 k2 p1 p2 k3 (OpenCV)",
             },
         }
@@ -206,6 +244,8 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
         cache.record(d, outputs, seconds, summary)
         for name, why in rejected.items():
             console.say(f"calibrate: {name}: rejected, {why}")
+        for w in warnings:
+            console.say(f"calibrate: warning: {w}")
         console.result(f"calibrate: {len(used)} of {len(photos)} photos used ({len(rejected)} rejected, "
                        f"{len(failed)} without the pattern), RMS {result.rms:.3f} px in {seconds:.1f} s")
         console.result(f"calibrate: fx {K[0, 0]:.2f} +- {std[0]:.2f}, fy {K[1, 1]:.2f} +- {std[1]:.2f}, "

@@ -179,15 +179,19 @@ def calibrate_cmd(obj, images, pattern, pattern_size, spacing, fix_k3, zero_tang
               help="Fail when the inliers' RMS exceeds this (px) [default: half the outlier threshold].")
 @click.option("--max-mesh-distance", type=float, default=0.01, show_default=True,
               help="Warn about 3D points farther than this fraction of the mesh's size from its surface.")
+@click.option("--edge-refine/--no-edge-refine", default=True, show_default=True,
+              help="Refine the pose so that the mesh's outline falls on the photo's edges, the clicks held within "
+                   "their noise (kept only if the outline fits the edges better and the clicks' RMS stays under "
+                   "--max-rms).")
 @click.option("--force", is_flag=True, help="Rerun even if up to date; replace a hand-written pose.json.")
 @click.pass_obj
-def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, force):
+def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine, force):
     """The mesh's pose from 2D-3D correspondences (correspondences.csv + camera.json) -> pose.json,
     out/register_overlay.png."""
     from .register import RegisterOptions, register_stage
 
     scene = scene_folder(obj["scene"])
-    opts = RegisterOptions(method, ransac, outlier_threshold, max_rms, max_mesh_distance)
+    opts = RegisterOptions(method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine)
     register_stage(scene, opts, obj["console"], force, obj["lock_wait"])
 
 

@@ -24,6 +24,7 @@ class RegisterOptions:
     outlier_threshold: float | None = None  # px; None = 0.5 % of the image diagonal, >= 3 px
     max_rms: float | None = None  # px; None = half the outlier threshold
     max_mesh_distance: float = 0.01  # fraction of the mesh's size
+    edge_refine: bool = True  # refine so the mesh's outline meets the photo's edges (when there is a photo)
 
     def check(self) -> None:
         for name in ("outlier_threshold", "max_rms"):
@@ -126,31 +127,58 @@ def register_stage(scene: SceneFiles, opts: RegisterOptions, console, force: boo
         outliers = np.flatnonzero(~r.inliers)
         if len(outliers):
             warnings.append(f"{len(outliers)} outliers left out by RANSAC on lines {_lines(outliers)}")
-        residuals = [{"line": i + 2, "u": float(uv[i, 0]), "v": float(uv[i, 1]), "du": float(r.residuals[i, 0]),
-                      "dv": float(r.residuals[i, 1]), "error_px": float(errors[i]), "inlier": bool(r.inliers[i]),
-                      "distance_to_mesh": float(distance[i])} for i in range(len(uv))]
-        pose = Pose(r.R, r.t, extra={"registration": {
-            "rms_px": r.rms, "rms_all_px": r.rms_all, "method": r.method, "points": len(uv),
-            "inliers": int(r.inliers.sum()), "planar": r.planar, "outlier_threshold_px": threshold,
-            "max_rms_px": max_rms, "sigma_rotation_deg": r.sigma_rotation_deg,
-            "sigma_camera_centre": r.sigma_translation, "camera_centre": r.camera_centre.tolist(),
-            "warnings": warnings, "residuals": residuals,
-            "note": "x_cam = R X + t (world -> camera); residual = projected - clicked, pixels",
-        }})
         photo = None
         if scene.image is not None:
             photo = load_photo(scene, camera)[1].pixels
-        outline = cam.mesh_outline(camera, pose, mesh, raycast.make_backend(mesh, "embree"))
+        backend = raycast.make_backend(mesh, "embree")
+        R, t, res = r.R, r.t, r.residuals
+        edge = None
+        if opts.edge_refine and photo is not None:
+            e = reg.refine_with_edges(r, uv, xyz, camera.K, camera.dist_coeffs, mesh.vertices, mesh.faces, backend,
+                                      reg.photo_edges(photo), max_click_rms=max_rms)
+            edge = {"accepted": e.accepted, "reason": e.reason, "outline_samples": e.outline_points,
+                    "outline_on_edges_before": e.aligned_before, "outline_on_edges_after": e.aligned_after,
+                    "clicks_rms_before_px": e.rms_clicks_before, "clicks_rms_after_px": e.rms_clicks_after,
+                    "rotation_change_deg": e.rotation_change_deg, "translation_change": e.translation_change,
+                    "clicks_only_pose": {"R": r.R.tolist(), "t": r.t.tolist()}}
+            if e.accepted:
+                R, t = e.R, e.t
+                res = reg.reprojection(R, t, uv, xyz, camera.K, camera.dist_coeffs)
+            else:
+                warnings.append(f"pose not refined against the photo's edges: {e.reason}")
+        errors = np.linalg.norm(res, axis=1)
+        rms = float(np.sqrt(np.mean(errors[r.inliers] ** 2)))
+        residuals = [{"line": i + 2, "u": float(uv[i, 0]), "v": float(uv[i, 1]), "du": float(res[i, 0]),
+                      "dv": float(res[i, 1]), "error_px": float(errors[i]), "inlier": bool(r.inliers[i]),
+                      "distance_to_mesh": float(distance[i])} for i in range(len(uv))]
+        pose = Pose(R, t, extra={"registration": {
+            "rms_px": rms, "rms_all_px": float(np.sqrt(np.mean(errors**2))), "method": r.method
+            + ("+edges" if edge and edge["accepted"] else ""), "points": len(uv),
+            "inliers": int(r.inliers.sum()), "planar": r.planar, "outlier_threshold_px": threshold,
+            "max_rms_px": max_rms, "sigma_rotation_deg_clicks": r.sigma_rotation_deg,
+            "sigma_camera_centre_clicks": r.sigma_translation, "camera_centre": (-R.T @ t).tolist(),
+            "edge_refinement": edge, "warnings": warnings, "residuals": residuals,
+            "note": "x_cam = R X + t (world -> camera); residual = projected - clicked, pixels; sigma_*_clicks: "
+                    "1-sigma from the clicks alone (the edge refinement, when accepted, is tighter)",
+        }})
+        outline = cam.mesh_outline(camera, pose, mesh, backend)
         overlay = scene.out / "register_overlay.png"
-        images.write_png(overlay, _overlay(photo, outline, uv, r.residuals, r.inliers), already_display=True)
+        images.write_png(overlay, _overlay(photo, outline, uv, res, r.inliers), already_display=True)
         write_json_atomic(scene.pose, pose.to_json())
         seconds = time.monotonic() - t0
         cache.record(d, [scene.pose, overlay], seconds,
-                     {"rms_px": r.rms, "inliers": int(r.inliers.sum()), "points": len(uv), "method": r.method})
+                     {"rms_px": rms, "inliers": int(r.inliers.sum()), "points": len(uv),
+                      "method": pose.extra["registration"]["method"]})
         for w in warnings:
             console.say(f"register: warning: {w}")
         console.result(f"register: {r.method}, {int(r.inliers.sum())} of {len(uv)} points, RMS {r.rms:.3f} px "
-                       f"(max {errors[r.inliers].max():.2f} px), rotation +- {r.sigma_rotation_deg:.3f} deg, "
-                       f"camera centre +- {r.sigma_translation:.3g} -> {cache.relative(scene.pose)}")
+                       f"(max {r.errors[r.inliers].max():.2f} px); from the clicks alone rotation +- "
+                       f"{r.sigma_rotation_deg:.3f} deg, camera centre +- {r.sigma_translation:.3g}")
+        if edge and edge["accepted"]:
+            console.result(f"register: refined against the photo's edges: outline on edges "
+                           f"{100 * edge['outline_on_edges_before']:.0f} -> {100 * edge['outline_on_edges_after']:.0f} %"
+                           f" of {edge['outline_samples']} samples, clicks RMS {rms:.3f} px, pose moved "
+                           f"{edge['rotation_change_deg']:.3f} deg / {100 * edge['translation_change']:.2f} % of |t|")
+        console.result(f"register: -> {cache.relative(scene.pose)}")
         console.say(f"register: overlay {cache.relative(overlay)}")
     return d
