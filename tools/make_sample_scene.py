@@ -5,6 +5,7 @@ than the demo solves at, with noise.
 Run once by a developer (it reads third-party data from outside the project):
     python tools/make_sample_scene.py --spot path/to/spot_triangulated.obj \
         --envmap path/to/rooitou_park_1k.hdr --out sample_data/spot_sun
+then tools/make_sample_calibration.py (calibration photos; camera.json and pose.json go to truth/).
 """
 
 from __future__ import annotations

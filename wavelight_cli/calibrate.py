@@ -30,6 +30,8 @@ class CalibrateOptions:
     pattern: str
     pattern_size: str  # "COLSxROWS" as OpenCV counts them
     spacing: str | None  # "20mm"; None = 1 (the intrinsics do not depend on it)
+    marker_size: str | None = None  # charuco: the marker's side, "15mm"
+    dictionary: str = "DICT_5X5_100"  # charuco
     fix_k3: bool = False
     zero_tangent: bool = False
     fix_aspect: bool = False
@@ -42,25 +44,35 @@ class CalibrateOptions:
         if not m:
             raise InputError(f"--pattern-size must be COLSxROWS (e.g. 4x11), got {self.pattern_size!r}", None,
                              "give the number of dots / inner corners per row and the number of rows")
+        marker = None
+        if self.pattern == "charuco":
+            if self.spacing is None or self.marker_size is None:
+                raise InputError("a ChArUco board needs --spacing (the square's side) and --marker-size", None,
+                                 "give both with units, e.g. --spacing 30mm --marker-size 22mm")
+            marker = _length(self.marker_size, "--marker-size")
         try:
-            return Target(self.pattern, int(m[1]), int(m[2]), self.spacing_m or 1.0)
+            return Target(self.pattern, int(m[1]), int(m[2]), self.spacing_m or 1.0, marker, self.dictionary)
         except ValueError as exc:
-            raise InputError(str(exc), None, "fix --pattern / --pattern-size / --spacing") from None
+            raise InputError(str(exc), None, "fix --pattern / --pattern-size / --spacing / --marker-size / "
+                             "--dictionary") from None
 
     @property
     def spacing_m(self) -> float | None:
-        if self.spacing is None:
-            return None
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*(mm|cm|m|in)?\s*", str(self.spacing))
-        if not m or float(m[1]) <= 0:
-            raise InputError(f"--spacing must be a positive length like 20mm, 2.5cm, 0.02m or 1in, got "
-                             f"{self.spacing!r}", None, "fix --spacing")
-        return float(m[1]) * UNITS[m[2] or "mm"]
+        return None if self.spacing is None else _length(self.spacing, "--spacing")
 
     def check(self) -> None:
         self.target()
         if not self.outlier_factor > 1:
             raise InputError(f"--outlier-factor must be > 1, got {self.outlier_factor}", None, "use e.g. 5")
+
+
+def _length(text: str, option: str) -> float:
+    """'20mm', '2.5cm', '0.02m', '1in' or a bare number of millimetres -> metres."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*(mm|cm|m|in)?\s*", str(text))
+    if not m or float(m[1]) <= 0:
+        raise InputError(f"{option} must be a positive length like 20mm, 2.5cm, 0.02m or 1in, got {text!r}", None,
+                         f"fix {option}")
+    return float(m[1]) * UNITS[m[2] or "mm"]
 
 
 def find_photos(scene: SceneFiles, pattern: str | None) -> list[Path]:
@@ -124,8 +136,11 @@ def _overlay(grey: np.ndarray, found, projected, colour_ok: bool, text: str) -> 
     k = max(1, int(np.ceil(640 / grey.shape[1])))
     img = cv2.cvtColor(cv2.resize(grey, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST), cv2.COLOR_GRAY2BGR)
     if found is not None:
-        cv2.drawChessboardCorners(img, found[1], (found[0] * k + (k - 1) / 2).reshape(-1, 1, 2).astype(np.float32),
-                                  True)
+        pts = (found[0] * k + (k - 1) / 2).reshape(-1, 1, 2).astype(np.float32)
+        if found[2] is None:
+            cv2.drawChessboardCorners(img, found[1], pts, True)
+        else:  # a ChArUco view: the corners it saw, with their ids
+            cv2.aruco.drawDetectedCornersCharuco(img, pts, found[2].reshape(-1, 1).astype(np.int32), (0, 200, 0))
     if projected is not None:
         for u, v in projected * k + (k - 1) / 2:
             cv2.drawMarker(img, (int(round(u)), int(round(v))), (0, 0, 255), cv2.MARKER_CROSS, 2 * k + 4, 1)
@@ -163,11 +178,12 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
             raise InputError(f"the photos have different sizes ({listing})", photos[0].parent,
                              "use photos from one camera at one resolution (no crops or resizes)")
         (width, height), = sizes
-        points, areas, failed = [], [], {}
+        points, areas, ids, failed = [], [], [], {}
         for p, g in zip(photos, greys):
-            pts, area, why = cal.find_target(g, target)
+            pts, area, why, view_ids = cal.find_target(g, target)
             points.append(pts)
             areas.append(area)
+            ids.append(view_ids)
             if pts is None:
                 failed[p.name] = why
                 console.say(f"calibrate: {p.name}: not found ({why})")
@@ -185,7 +201,8 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
                              "add photos that show the whole target sharply, at different angles")
         result = cal.calibrate([points[i] for i in ok], target, (width, height), opts.fix_k3, opts.zero_tangent,
                                opts.fix_aspect, outlier_factor=opts.outlier_factor, min_views=MIN_VIEWS,
-                               dot_areas=[areas[i] for i in ok] if target.pattern != "chessboard" else None)
+                               dot_areas=[areas[i] for i in ok] if target.pattern in ("circles", "acircles") else None,
+                               ids=[ids[i] for i in ok] if target.pattern == "charuco" else None)
         used = [ok[i] for i in result.used]
         rejected = {photos[ok[i]].name: why for i, why in result.rejected.items()}
         per_view = {photos[i].name: round(float(r), 4) for i, r in zip(used, result.per_view_rms)}
@@ -201,6 +218,8 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
                 "std": {name: float(v) for name, v in zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
                                                            std)},
                 "pattern": target.pattern, "pattern_size": [target.cols, target.rows],
+                **({"marker_size_m": target.marker, "dictionary": target.dictionary}
+                   if target.pattern == "charuco" else {}),
                 "spacing_m": opts.spacing_m, "fix_k3": opts.fix_k3, "zero_tangent": opts.zero_tangent,
                 "fix_aspect": opts.fix_aspect, "outlier_factor": opts.outlier_factor,
                 "dot_radius_m": (result.dot_radius if opts.spacing_m else None),
@@ -218,10 +237,11 @@ def calibrate_stage(scene: SceneFiles, opts: CalibrateOptions, console, force: b
                 if points[i] is None:
                     text, good, found = f"{p.name}: not found ({failed[p.name]})", False, None
                 elif p.name in rejected:
-                    text, good, found = f"{p.name}: rejected ({rejected[p.name]})", False, (points[i], target.size)
+                    text, good, found = (f"{p.name}: rejected ({rejected[p.name]})", False,
+                                         (points[i], target.size, ids[i]))
                 else:
                     text, good, found = (f"{p.name}: RMS {per_view[p.name]:.3f} px (red +: model)", True,
-                                         (points[i], target.size))
+                                         (points[i], target.size, ids[i]))
                 out = tmp_dir / f"{p.stem}_overlay.png"
                 images.write_png(out, _overlay(g, found, projected.get(i), good, text), already_display=True)
                 overlays.append(out)

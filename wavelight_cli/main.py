@@ -141,14 +141,18 @@ def _command(name, **kwargs):
 @click.option("--images", default=None,
               help="Photos of the target: a glob relative to the scene folder (default: every photo in calib/).")
 @click.option("--pattern", default="acircles", show_default=True,
-              type=click.Choice(["acircles", "circles", "chessboard"]),
-              help="Target: OpenCV's asymmetric circle grid (the paper's dots), a symmetric circle grid, or a "
-                   "chessboard.")
+              type=click.Choice(["acircles", "circles", "chessboard", "charuco"]),
+              help="Target: OpenCV's asymmetric circle grid (the paper's dots), a symmetric circle grid, a "
+                   "chessboard, or a ChArUco board (a chessboard with ArUco markers: partly hidden views count).")
 @click.option("--pattern-size", default="4x11", show_default=True,
-              help="COLSxROWS as OpenCV counts them: dots per row x rows (circle grids), inner corners (chessboard).")
+              help="COLSxROWS as OpenCV counts them: dots per row x rows (circle grids), inner corners (chessboard), "
+                   "squares (charuco).")
 @click.option("--spacing", default=None,
               help="Dot or square spacing with a unit (20mm, 2cm, 0.02m, 1in; a bare number is mm). acircles: half "
                    "the distance of two dots in a row (OpenCV's convention). The intrinsics do not depend on it.")
+@click.option("--marker-size", default=None, help="charuco: the ArUco marker's side with a unit (e.g. 22mm).")
+@click.option("--dictionary", default="DICT_5X5_100", show_default=True,
+              help="charuco: OpenCV's predefined ArUco dictionary of the board (DICT_4X4_50 ... DICT_7X7_1000).")
 @click.option("--fix-k3", is_flag=True, help="Fix the 6th-order radial term k3 at 0 (lenses with little distortion).")
 @click.option("--zero-tangent", is_flag=True, help="Fix the tangential distortion p1, p2 at 0.")
 @click.option("--fix-aspect", is_flag=True, help="Fix fx/fy (square pixels).")
@@ -157,13 +161,14 @@ def _command(name, **kwargs):
                    "then calibrate again.")
 @click.option("--force", is_flag=True, help="Rerun even if up to date; replace a hand-written camera.json.")
 @click.pass_obj
-def calibrate_cmd(obj, images, pattern, pattern_size, spacing, fix_k3, zero_tangent, fix_aspect, outlier_factor,
-                  force):
+def calibrate_cmd(obj, images, pattern, pattern_size, spacing, marker_size, dictionary, fix_k3, zero_tangent,
+                  fix_aspect, outlier_factor, force):
     """Camera intrinsics and lens distortion from photos of a target -> camera.json, out/calibrate/*_overlay.png."""
     from .calibrate import CalibrateOptions, calibrate_stage
 
     scene = scene_folder(obj["scene"])
-    opts = CalibrateOptions(images, pattern, pattern_size, spacing, fix_k3, zero_tangent, fix_aspect, outlier_factor)
+    opts = CalibrateOptions(images, pattern, pattern_size, spacing, marker_size, dictionary, fix_k3, zero_tangent,
+                            fix_aspect, outlier_factor)
     calibrate_stage(scene, opts, obj["console"], force, obj["lock_wait"])
 
 
