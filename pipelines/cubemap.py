@@ -363,6 +363,45 @@ def cube_to_latlong(texels: np.ndarray, cube: CubeMap, height: int) -> np.ndarra
     return out[..., 0] if squeeze else out
 
 
+def rotate_latlong(latlong: np.ndarray, degrees: float) -> np.ndarray:
+    """Turn a lat-long light about +Z by `degrees` (counter-clockwise seen from above: what was at
+    azimuth phi moves to phi + degrees). Whole columns move exactly; the fractional part blends two
+    neighbouring shifts, which keeps the total power exact (every column of a row has the same
+    solid angle)."""
+    img = np.asarray(latlong)
+    W = img.shape[1]
+    shift = (float(degrees) / 360.0 * W) % W
+    k = int(np.floor(shift))
+    f = shift - k
+    a = np.roll(img, k, axis=1)
+    return a if f == 0 else (1.0 - f) * a + f * np.roll(img, k + 1, axis=1)
+
+
+def resample_cube(texels: np.ndarray, source: CubeMap, target: CubeMap, rotate_deg: float = 0.0,
+                  k: int = 8) -> np.ndarray:
+    """A cube-map light on another cube map (another R, hemisphere or sphere), turned about +Z by
+    `rotate_deg` (phi -> phi + rotate_deg): each target texel averages the source radiance over a
+    k x k sub-texel quadrature of its footprint (exact solid-angle weights), turned back into the
+    source. Directions the source does not cover get 0. Unlike a trip through a lat-long image it
+    does not blur: turned by 360 deg or resampled to the same cube, a light comes back exactly."""
+    tex = np.asarray(texels, dtype=np.float64)
+    if tex.shape[0] != source.n_texels:
+        raise ValueError(f"texels must have {source.n_texels} rows, got {tex.shape[0]}")
+    turns = float(rotate_deg) % 360.0
+    if source == target and turns == 0.0:
+        return tex.copy()
+    dirs, weights = target.quadrature(k)
+    a = -np.radians(turns)
+    c, s_ = np.cos(a), np.sin(a)
+    d = dirs.astype(np.float64)
+    back = np.stack([c * d[..., 0] - s_ * d[..., 1], s_ * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
+    idx = source.lookup(back)
+    w = weights.astype(np.float64) * (idx >= 0)
+    vals = tex[np.where(idx >= 0, idx, 0)]
+    return np.einsum("nsc,ns->nc", vals.reshape(*idx.shape, -1), w).reshape(len(idx), *tex.shape[1:]) / \
+        target.solid_angles.reshape(-1, *([1] * (tex.ndim - 1)))
+
+
 def cross_image(texels: np.ndarray, cube: CubeMap, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Lay the texels out as a 3R x 4R horizontal cross (see CROSS_BLOCKS).
 

@@ -353,6 +353,53 @@ def compare_cmd(obj, force, **kw):
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 
 
+@_command("relight")
+@click.option("--light", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A lat-long light (EXR/HDR, DESIGN convention) [default: the light solve recovered].")
+@click.option("--rotate", type=float, default=0.0, show_default=True,
+              help="Turn the light about +Z by this many degrees (azimuth phi -> phi + DEG).")
+@click.option("--light-exposure", type=float, default=0.0, show_default=True,
+              help="Scale the light by 2^STOPS.")
+@click.option("--view", "view_pose", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Render from another view: its pose.json (visibility for it is computed once and cached).")
+@click.option("--view-camera", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The other view's camera.json [default: the scene's].")
+@click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="An image to compare with [default: the photo, for the photo's view].")
+@click.option("--reference-mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Where to compare (white = compare) [default: every rendered pixel].")
+@click.option("--name", default="relight", show_default=True,
+              help="Output names: out/NAME.exr, NAME.png, NAME_residual.png, NAME.json.")
+@material_options
+@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@visibility_options
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_context
+def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, name, exposure,
+                force, **kw):
+    """Render the scene under the recovered light (or any lat-long light, turned and scaled), from the
+    photo's view or another one, with the fitted reflectance -> out/NAME.exr/png and its error."""
+    from click.core import ParameterSource
+
+    from .relight import RelightOptions, relight_stage
+
+    obj = ctx.obj
+    scene = scene_folder(obj["scene"])
+    given: set = set()
+    material = _material(kw, given)
+    material_path = None
+    fitted = scene.out / "reflectance.json"
+    if not given and fitted.is_file():
+        material = stages.material_from_options(fitted, None, None, None, None)
+        material_path = fitted
+    solved = scene.out / "coefficients.h5"
+    if light is None and ctx.get_parameter_source("resolution") != ParameterSource.COMMANDLINE and solved.is_file():
+        kw["resolution"] = stages.solved_resolution(solved)
+    opts = RelightOptions(light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, exposure,
+                          name)
+    relight_stage(scene, _vis_opts(kw), opts, material, material_path, obj["console"], force, obj["lock_wait"])
+
+
 @_command("check")
 @visibility_options
 @click.pass_obj

@@ -74,68 +74,96 @@ def _require(path: Path | None, what: str, fix: str) -> Path:
     return Path(path)
 
 
-def visibility_inputs(scene: SceneFiles) -> dict[str, Path | None]:
-    _require(scene.camera, "camera", "write camera.json or run wavelight calibrate")
-    _require(scene.pose, "pose", "write pose.json or run wavelight register")
+@dataclass(frozen=True)
+class View:
+    """A camera looking at the scene's mesh: the photo's own (camera.json, pose.json, mask.png) or
+    another one (relight --view). Each view has its own visibility stage and file in the cache."""
+
+    camera: Path
+    pose: Path
+    mask: Path | None = None
+    name: str = ""  # "" = the photo's view
+
+    @property
+    def stage(self) -> str:
+        return "visibility" + (f"-{self.name}" if self.name else "")
+
+    @property
+    def file(self) -> str:
+        return self.stage + ".h5"
+
+
+def photo_view(scene: SceneFiles) -> View:
+    return View(scene.camera, scene.pose, scene.mask)
+
+
+def visibility_inputs(scene: SceneFiles, view: View | None = None) -> dict[str, Path | None]:
+    view = view or photo_view(scene)
+    _require(view.camera, "camera", "write camera.json or run wavelight calibrate")
+    _require(view.pose, "pose", "write pose.json or run wavelight register")
     mesh = scene.mesh
-    return {"camera.json": scene.camera, "pose.json": scene.pose, mesh.name: mesh, "mask.png": scene.mask}
+    return {"camera.json": view.camera, "pose.json": view.pose, mesh.name: mesh, "mask.png": view.mask}
 
 
-def _load_samples(scene: SceneFiles, opts: VisibilityOptions):
+def _load_samples(scene: SceneFiles, opts: VisibilityOptions, view: View | None = None):
     from pipelines import camera as cam
     from pipelines import images, raycast
     from pipelines.scene import load_mesh, read_camera, read_pose
 
-    camera = read_camera(scene.camera)
-    pose = read_pose(scene.pose)
+    view = view or photo_view(scene)
+    camera = read_camera(view.camera)
+    pose = read_pose(view.pose)
     mesh = load_mesh(scene.mesh)
-    mask = images.read_mask(scene.mask) if scene.mask else None
+    mask = images.read_mask(view.mask) if view.mask else None
     backend = raycast.make_backend(mesh, opts.backend)
     try:
-        samples, diag = cam.pixel_samples(camera, pose, mesh, backend, mask, opts.edge_margin, mask_path=scene.mask)
+        samples, diag = cam.pixel_samples(camera, pose, mesh, backend, mask, opts.edge_margin, mask_path=view.mask)
     except InputError as exc:
         if exc.path is None:  # geometric problem: blame the pose
-            raise InputError(exc.problem, scene.pose, exc.fix) from None
+            raise InputError(exc.problem, view.pose, exc.fix) from None
         raise
     return camera, mesh, backend, samples, diag
 
 
 def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Console, force: bool = False,
-                     lock_wait: float = 600.0) -> Decision:
-    """Shadow visibility of every used pixel towards every texel -> .wavelight/visibility.h5.
+                     lock_wait: float = 600.0, view: View | None = None) -> Decision:
+    """Shadow visibility of every used pixel towards every texel -> .wavelight/visibility.h5
+    (another view: .wavelight/visibility-<name>.h5, its own stage).
 
-    Resumable: finished chunks are kept in .wavelight/partial/visibility-<key>/ until the file is
+    Resumable: finished chunks are kept in .wavelight/partial/<stage>-<key>/ until the file is
     assembled, so an interrupted run continues where it stopped and gives identical bits.
     """
     from pipelines import visibility as vis
     from pipelines.cubemap import CubeMap
 
     opts.check()
+    view = view or photo_view(scene)
     cache = SceneCache(scene.root)
-    inputs = visibility_inputs(scene)
+    inputs = visibility_inputs(scene, view)
+    stage = view.stage
     with cache.lock(lock_wait, console.say):
-        d = cache.plan("visibility", VISIBILITY_VERSION, asdict(opts), inputs, {}, force)
+        d = cache.plan(stage, VISIBILITY_VERSION, asdict(opts), inputs, {}, force)
         console.decision(d)
         if not d.run:
             return d
         t0 = time.monotonic()
-        camera, mesh, backend, samples, diag = _load_samples(scene, opts)
+        camera, mesh, backend, samples, diag = _load_samples(scene, opts, view)
         for note in mesh.notes:
-            console.say(f"visibility: mesh: {note}")
+            console.say(f"{stage}: mesh: {note}")
         cube = CubeMap(opts.resolution, opts.hemisphere)
         partial_root = cache.dir / "partial"
-        partial = partial_root / f"visibility-{d.key[:16]}"
+        partial = partial_root / f"{stage}-{d.key[:16]}"
         if partial_root.is_dir():
-            for other in partial_root.glob("visibility-*"):
-                if other != partial:
+            for other in partial_root.glob(f"{stage}-*"):
+                if other != partial and other.name[len(stage) + 1:].isalnum():
                     shutil.rmtree(other, ignore_errors=True)
         partial.mkdir(parents=True, exist_ok=True)
         n = len(samples)
         n_chunks = (n + CHUNK_PIXELS - 1) // CHUNK_PIXELS
         done = sum((partial / f"chunk_{i:05d}.npy").is_file() for i in range(n_chunks))
         if done:
-            console.say(f"visibility: resuming, {done}/{n_chunks} chunks already done")
-        console.say(f"visibility: {n} pixels x {cube.n_texels} texels (R={opts.resolution}, "
+            console.say(f"{stage}: resuming, {done}/{n_chunks} chunks already done")
+        console.say(f"{stage}: {n} pixels x {cube.n_texels} texels (R={opts.resolution}, "
                     f"{'hemisphere' if opts.hemisphere else 'sphere'}, supersample {opts.supersample}, "
                     f"{opts.backend})")
         rays = 0
@@ -152,13 +180,13 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
             rays += int(np.count_nonzero(vis.castable(samples.normal[rows], samples.geometric_normal[rows],
                                                       cube.directions))) * opts.supersample**2
             rate = rays / max(time.monotonic() - t_cast, 1e-9) / 1e6
-            console.progress("visibility", i + 1, n_chunks, f"{rate:.1f} Mrays/s")
+            console.progress(stage, i + 1, n_chunks, f"{rate:.1f} Mrays/s")
 
         def chunks():
             for i in range(n_chunks):
                 yield np.load(partial / f"chunk_{i:05d}.npy", allow_pickle=False)
 
-        out = cache.dir / "visibility.h5"
+        out = cache.dir / view.file
         with atomic_output(out) as tmp:
             vis.write_visibility(tmp, samples, cube, opts.supersample, chunks(), CHUNK_PIXELS,
                                  attrs={"key": d.key, "backend": opts.backend})
@@ -168,7 +196,7 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
         shutil.rmtree(partial, ignore_errors=True)
         if partial_root.is_dir() and not any(partial_root.iterdir()):
             partial_root.rmdir()
-        console.result(f"visibility: done in {seconds:.1f} s ({rays / 1e6:.1f} M rays cast) -> {cache.relative(out)}")
+        console.result(f"{stage}: done in {seconds:.1f} s ({rays / 1e6:.1f} M rays cast) -> {cache.relative(out)}")
     return d
 
 
@@ -220,6 +248,18 @@ def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
         raise InputError(f"image is {img.width}x{img.height} but camera.json says {camera.width}x{camera.height}",
                          path, "use the photo the camera was calibrated for, or fix camera.json")
     return path, img
+
+
+def solved_resolution(path: Path) -> int:
+    """The cube-map resolution of the light `solve` wrote (out/coefficients.h5)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return int(f.attrs["resolution"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"cannot read the solved light ({str(exc).splitlines()[0]})", path,
+                         "rerun wavelight solve --force") from None
 
 
 def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
