@@ -400,6 +400,27 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
     relight_stage(scene, _vis_opts(kw), opts, material, material_path, obj["console"], force, obj["lock_wait"])
 
 
+@_command("export")
+@click.option("--format", "formats", multiple=True, type=click.Choice(["mitsuba", "blender", "opengl", "all"]),
+              default=("all",), show_default=True,
+              help="Mitsuba 3 envmap (EXR + emitter XML), Blender world (equirectangular EXR), OpenGL / three.js "
+                   "cube faces (px nx py ny pz nz EXR); repeat the option for several.")
+@click.option("--light", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A lat-long light to convert [default: the light solve recovered].")
+@click.option("--height", type=int, default=None,
+              help="Rows of the lat-long exports [default: 4 x the cube map's R, at least 64].")
+@click.option("--face-size", type=int, default=None, help="Cube face size [default: the solve's R].")
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def export_cmd(obj, formats, light, height, face_size, force):
+    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (see README: Exports)."""
+    from .export import FORMATS, export_stage
+
+    scene = scene_folder(obj["scene"])
+    chosen = FORMATS if "all" in formats else tuple(f for f in FORMATS if f in formats)
+    export_stage(scene, chosen, light, height, face_size, obj["console"], force, obj["lock_wait"])
+
+
 @_command("check")
 @visibility_options
 @click.pass_obj
