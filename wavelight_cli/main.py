@@ -400,6 +400,49 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
     relight_stage(scene, _vis_opts(kw), opts, material, material_path, obj["console"], force, obj["lock_wait"])
 
 
+@_command("insert")
+@click.option("--object", "object_arg", default="sphere", show_default=True,
+              help="The virtual object: a mesh file (its own coordinates, +Z up) or 'sphere'.")
+@click.option("--at", type=(float, float, float), required=True,
+              help="Where the object's origin goes, world coordinates (a sphere's centre).")
+@click.option("--scale", type=float, default=1.0, show_default=True, help="Scale the object about its origin.")
+@click.option("--rotate-z", type=float, default=0.0, show_default=True, help="Turn the object about +Z (degrees).")
+@click.option("--radius", type=float, default=None, help="sphere: radius [default: 10 % of the scene's size].")
+@click.option("--object-material", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The object's material JSON (same format as --material).")
+@click.option("--object-kd", type=(float, float, float), default=None,
+              help="The object's diffuse albedo, relative to the scene's kd (the light holds the scene's albedo "
+                   "when kd = 1) [default: 0.8 0.8 0.8].")
+@click.option("--light", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A lat-long light [default: the light solve recovered].")
+@click.option("--resolution", "-R", type=int, default=None,
+              help="Cube-map R of the light [default: the solve's, or 32 for --light].")
+@click.option("--supersample", type=int, default=1, show_default=True, help="k x k shadow rays per texel.")
+@click.option("--name", default="insert", show_default=True, help="Output names: out/NAME.exr/png, NAME_render.exr, "
+              "NAME_shadow.png, NAME.json.")
+@material_options
+@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@click.pass_obj
+def insert_cmd(obj, **kw):
+    """Put a virtual object into the photo: shaded by the recovered light with its own shadows, its
+    shadow on the known geometry added by differential rendering -> out/NAME.exr/png."""
+    from .insert import InsertOptions, insert_stage
+
+    scene = scene_folder(obj["scene"])
+    given: set = set()
+    material = _material(kw, given)
+    material_path = None
+    fitted = scene.out / "reflectance.json"
+    if not given and fitted.is_file():
+        material = stages.material_from_options(fitted, None, None, None, None)
+        material_path = fitted
+    opts = InsertOptions(kw.pop("object_arg"), kw.pop("at"), kw.pop("scale"), kw.pop("rotate_z"), kw.pop("radius"),
+                         kw.pop("object_material"), kw.pop("object_kd"), kw.pop("light"), kw.pop("resolution"),
+                         kw.pop("supersample"), kw.pop("exposure"), kw.pop("name"))
+    insert_stage(scene, opts, material, material_path, obj["console"], kw.pop("force"), obj["lock_wait"])
+
+
 @_command("export")
 @click.option("--format", "formats", multiple=True, type=click.Choice(["mitsuba", "blender", "opengl", "all"]),
               default=("all",), show_default=True,
