@@ -26,11 +26,16 @@ demo: $(STAMP)
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) register
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) solve
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) compare
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) relight --name evening --rotate 120 --light-exposure -1
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) insert --at 0.8 -0.6 0.25 --radius 0.25 --object-kd 0.9 0.3 0.2
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) export
 	$(BIN)/wavelight -s $(DEMO)/$(SCENE) status
+	$(BIN)/wavelight -s $(DEMO)/$(SCENE) report
 	@echo "results: $(DEMO)/$(SCENE)/camera.json, pose.json (calibrated, registered) and $(DEMO)/$(SCENE)/out"
 	@echo "         (calibrate/*_overlay.png, register_overlay.png, light_latlong.exr, light_cross.png, relit.png,"
-	@echo "         residual.png, reflectance.json, solve_report.json, compare.md, compare.png)"
+	@echo "         residual.png, reflectance.json, compare.md, evening.png, insert.png, export/, report/)"
 	@echo "truth (camera, pose, light, material): $(DEMO)/$(SCENE)/truth"
+	@echo "report: $(DEMO)/$(SCENE)/out/report.md"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -365,7 +365,7 @@ def compare_cmd(obj, force, **kw):
 @click.option("--view-camera", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The other view's camera.json [default: the scene's].")
 @click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="An image to compare with [default: the photo, for the photo's view].")
+              help="An image to compare with [default: the photo, when the view and the light are the photo's].")
 @click.option("--reference-mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Where to compare (white = compare) [default: every rendered pixel].")
 @click.option("--name", default="relight", show_default=True,
@@ -462,6 +462,16 @@ def export_cmd(obj, formats, light, height, face_size, force):
     scene = scene_folder(obj["scene"])
     chosen = FORMATS if "all" in formats else tuple(f for f in FORMATS if f in formats)
     export_stage(scene, chosen, light, height, face_size, obj["console"], force, obj["lock_wait"])
+
+
+@_command("report")
+@click.pass_obj
+def report_cmd(obj):
+    """out/report.md with figures (out/report/*.png) from the results on disk: input, relit, residual,
+    light, observability; the refinement level by level; reflectance; bases; relighting."""
+    from .report import report_stage
+
+    report_stage(scene_folder(obj["scene"]), obj["console"])
 
 
 @_command("check")

@@ -28,7 +28,7 @@ class RelightOptions:
     light_exposure: float = 0.0  # stops: the light is multiplied by 2**light_exposure
     view_pose: Path | None = None  # another view: its pose.json
     view_camera: Path | None = None  # and its camera.json (default: the scene's)
-    reference: Path | None = None  # an image to compare with (default: the photo, for the photo's view)
+    reference: Path | None = None  # an image to compare with (default: the photo, for its own view and light)
     reference_mask: Path | None = None  # where to compare (white = compare)
     exposure: float | None = None  # PNG exposure in stops (None = automatic)
     name: str = "relight"
@@ -99,8 +99,9 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
     view = view_of(scene, opts)
     camera = read_camera(_require(view.camera, "camera", "write camera.json or run wavelight calibrate"))
     reference = opts.reference
-    if reference is None and opts.view_pose is None:
-        reference = scene.image
+    same_light = opts.light is None and opts.rotate % 360 == 0 and opts.light_exposure == 0
+    if reference is None and opts.view_pose is None and same_light:
+        reference = scene.image  # the photo's own view and light: how well the model explains the photo
     mask_path = opts.reference_mask
     cache = SceneCache(scene.root)
     stage = "relight" if opts.name == "relight" else f"relight-{opts.name}"
