@@ -180,3 +180,20 @@ def assert_one_error_line(result, culprit: str, quiet: bool) -> str:
     assert culprit in line, f"the error must name {culprit!r}: {line}"
     assert "\n" not in line
     return line
+
+
+FILE_SUFFIXES = (".exr", ".json", ".png", ".obj", ".ply", ".csv", ".h5")
+
+
+def check_bad_input(source: Path, tmp_path: Path, mutate, args, culprit: str) -> str:
+    """On a copy of `source`: apply `mutate` (or None), run `args` (arguments that name files are
+    taken relative to the copy), and assert one error line naming `culprit` (a file name or an
+    option), with `.wavelight/` and `out/` left exactly as they were. Returns the error line."""
+    scene = copy_scene(source, tmp_path / "bad")
+    if mutate:
+        mutate(scene)
+    argv = [str(scene / a) if a.endswith(FILE_SUFFIXES) and not a.startswith("-") else a for a in args]
+    before = snapshot(scene)
+    line = assert_one_error_line(invoke(scene, *argv), culprit, quiet=False)
+    assert snapshot(scene) == before, f"a failed run changed the cache or the results: {line}"
+    return line

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import RES, assert_one_error_line, copy_sample, invoke, ok, snapshot
+from cli_helpers import RES, check_bad_input, copy_sample, invoke, ok
 from pipelines import cubemap, images
 
 SCENES = Path(__file__).parent / "data" / "scenes"
@@ -147,11 +147,4 @@ BAD = [
 
 @pytest.mark.parametrize("mutate, args, culprit", [pytest.param(*c[1:], id=c[0]) for c in BAD])
 def test_bad_input_one_error_line(sample, tmp_path, mutate, args, culprit):
-    scene = shutil.copytree(sample, tmp_path / "s")
-    if mutate:
-        mutate(scene)
-    args = [a if not a.endswith((".exr", ".json", ".png")) or a == "camera.json" else str(scene / a) for a in args]
-    args = [str(scene / a) if a == "camera.json" else a for a in args]
-    before = snapshot(scene)
-    assert_one_error_line(invoke(scene, *args), culprit, quiet=False)
-    assert snapshot(scene) == before
+    check_bad_input(sample, tmp_path, mutate, args, culprit)

@@ -51,7 +51,6 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     from pipelines import cubemap, images, raycast
     from pipelines import insert as ins
     from pipelines import light as lt
-    from pipelines import render as rd
     from pipelines.scene import load_mesh, read_camera, read_pose
 
     from .stages import material_from_options

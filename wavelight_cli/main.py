@@ -235,6 +235,17 @@ def _material(kw, given: set | None = None):
                                         kw.pop("shininess"), given)
 
 
+def _material_or_fitted(kw, scene):
+    """The material options if any is given, else the reflectance `solve` fitted
+    (out/reflectance.json) when there is one, else the defaults. Returns (material, the file used)."""
+    given: set = set()
+    material = _material(kw, given)
+    fitted = scene.out / "reflectance.json"
+    if not given and fitted.is_file():
+        return stages.material_from_options(fitted, None, None, None, None), fitted
+    return material, None
+
+
 @_command("render")
 @click.option("--light", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Lat-long light (EXR/HDR, DESIGN convention: row 0 = zenith, +Z up).")
@@ -343,11 +354,8 @@ def compare_cmd(obj, force, **kw):
     from . import solve
 
     scene = scene_folder(obj["scene"])
-    given: set = set()
-    material = _material(kw, given)
-    fitted = scene.out / "reflectance.json"
-    if not given and fitted.is_file():
-        material = stages.material_from_options(fitted, None, None, None, None)
+    material, fitted = _material_or_fitted(kw, scene)
+    if fitted is not None:
         obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {solve.material_text(material)}")
     opts = _solve_opts(kw)
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
@@ -385,13 +393,7 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
 
     obj = ctx.obj
     scene = scene_folder(obj["scene"])
-    given: set = set()
-    material = _material(kw, given)
-    material_path = None
-    fitted = scene.out / "reflectance.json"
-    if not given and fitted.is_file():
-        material = stages.material_from_options(fitted, None, None, None, None)
-        material_path = fitted
+    material, material_path = _material_or_fitted(kw, scene)
     solved = scene.out / "coefficients.h5"
     if light is None and ctx.get_parameter_source("resolution") != ParameterSource.COMMANDLINE and solved.is_file():
         kw["resolution"] = stages.solved_resolution(solved)
@@ -430,13 +432,7 @@ def insert_cmd(obj, **kw):
     from .insert import InsertOptions, insert_stage
 
     scene = scene_folder(obj["scene"])
-    given: set = set()
-    material = _material(kw, given)
-    material_path = None
-    fitted = scene.out / "reflectance.json"
-    if not given and fitted.is_file():
-        material = stages.material_from_options(fitted, None, None, None, None)
-        material_path = fitted
+    material, material_path = _material_or_fitted(kw, scene)
     opts = InsertOptions(kw.pop("object_arg"), kw.pop("at"), kw.pop("scale"), kw.pop("rotate_z"), kw.pop("radius"),
                          kw.pop("object_material"), kw.pop("object_kd"), kw.pop("light"), kw.pop("resolution"),
                          kw.pop("supersample"), kw.pop("exposure"), kw.pop("name"))

@@ -249,12 +249,14 @@ def report_stage(scene: SceneFiles, console: Console) -> Path:
     extras = sorted(p for p in out.glob("*.json") if p.name not in (
         "solve_report.json", "reflectance.json", "compare.json", "report.json"))
     shown = [(p, _json(p)) for p in extras]
-    shown = [(p, d) for p, d in shown if d and ("relative_rmse_vs_photo" in d or "object_pixels" in d)]
+    shown = [(p, d) for p, d in shown if d and (("view" in d and "light" in d) or "object_pixels" in d)]
     if shown:
         lines += ["## Relighting and insertion", "", "| output | what | error vs reference |", "|---|---|---:|"]
         for p, d in shown:
+            turned = (f", turned {d['rotate_deg']:g} deg" if d.get("rotate_deg") else "") + (
+                f", {d['light_exposure_stops']:+g} stops" if d.get("light_exposure_stops") else "")
             what = (f"object at {d['at']}, {d['object_pixels']} px, shadow on {d['shadowed_pixels_5pct']} px"
-                    if "object_pixels" in d else f"{d.get('light')} light, view {d.get('view')}")
+                    if "object_pixels" in d else f"{d.get('light')} light{turned}, view {d.get('view')}")
             ref = f"{_pct(d.get('relative_rmse_vs_photo'))} ({Path(d['reference']).name})" \
                 if "relative_rmse_vs_photo" in d else "–"
             lines.append(f"| `{p.stem}.png` | {what} | {ref} |")
