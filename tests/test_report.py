@@ -32,6 +32,7 @@ def test_report_has_its_figures_and_sections(reported):
                     "## Relighting and insertion"):
         assert section in md
     assert "`turned.png`" in md and "`insert.png`" in md
+    assert "compare_lights.png" in md and (out / "compare_lights.png").stat().st_size > 5000
 
 
 def test_every_number_comes_from_the_json(reported):

@@ -243,6 +243,8 @@ def report_stage(scene: SceneFiles, console: Console) -> Path:
         for row in compare.get("rows", []):
             lines.append(f"| {row['basis']} | {row['coefficients']} | {_pct(row['fit_rmse'])} | "
                          f"{_pct(row['held_out_rmse'])} | {_pct(row['all_pixels_rmse'])} | {row['seconds']:.3f} |")
+        if (out / "compare_lights.png").is_file():
+            lines += ["", "![the bases' lights side by side](compare_lights.png)"]
         if (out / "compare.png").is_file():
             lines += ["", "![speed against error](compare.png)"]
         lines.append("")

@@ -17,7 +17,7 @@ from .stages import (Console, VisibilityOptions, compare_to_photo, heat_map, loa
                      write_light)
 
 SOLVE_VERSION = 2
-COMPARE_VERSION = 1
+COMPARE_VERSION = 2
 BASES = ("wavelet", "quadtree", "discrete", "sh", "points")
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
               "the albedo (DESIGN §2)")
@@ -394,11 +394,12 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
             return d
         t0 = time.monotonic()
         problem = _problem(scene, cache, material, opts, console, "compare", camera, photo_path, photo)
-        rows = []
+        rows, lights = [], []
         runs = [("wavelet", None), ("quadtree", None), ("discrete", None), ("sh", False), ("sh", True),
                 ("points", None)]
         for basis, nonneg in runs:
             sol = _solve(problem, opts, basis, console, "compare", nonneg)
+            lights.append((f"{sol.basis} ({sol.n_coefficients})", sol.light))
             min_rel = sol.details.get("min_radiance_relative", float(sol.light.min() / max(sol.light.max(), 1e-300)))
             rows.append({"basis": sol.basis, "coefficients": sol.n_coefficients,
                          "levels": len(sol.levels), "fit_rmse": sol.levels[sol.chosen].fit_rmse,
@@ -417,12 +418,13 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                              "all_pixels_rmse": "relative RMSE of the final light (re-solved on all pixels)",
                              "seconds": "solve time after the normal equations",
                              "min_radiance_relative": "lowest texel radiance / highest (negative: not a light)"}}
-        outputs = [out / "compare.json", out / "compare.md", out / "compare.png"]
+        outputs = [out / "compare.json", out / "compare.md", out / "compare.png", out / "compare_lights.png"]
         write_json_atomic(outputs[0], _jsonable(table))
         text = compare_markdown(table)
         with atomic_output(outputs[1]) as tmp:
             tmp.write_text(text)
         compare_plot(table, outputs[2])
+        compare_lights_figure(lights, problem.data.cube, outputs[3])
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, {"rows": len(rows)})
         console.result(text.rstrip())
@@ -444,6 +446,34 @@ def compare_markdown(table: dict) -> str:
         lines.append(f"| {r['basis']} | {r['coefficients']} | {pct(r['fit_rmse'])} | {pct(r['held_out_rmse'])} | "
                      f"{pct(r['all_pixels_rmse'])} | {r['seconds']:.3f} | {round(r['min_radiance_relative'], 3) + 0.0:+.3f} |")
     return "\n".join(lines) + "\n"
+
+
+def compare_lights_figure(lights: list, cube, path: Path) -> None:
+    """Each basis' light on the cube cross, side by side, at one exposure (negative radiance of a
+    plain SH fit shown in blue)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipelines import cubemap, images
+
+    # one exposure for all: the sky's level (a sun saturates; its place shows)
+    top = max(float(np.percentile(np.abs(t[t != 0]), 95)) if np.any(t != 0) else 1.0 for _, t in lights)
+    fig, axes = plt.subplots(2, (len(lights) + 1) // 2, figsize=(3.4 * ((len(lights) + 1) // 2), 5.4), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (label, texels) in zip(axes.ravel(), lights):
+        cross, valid = cubemap.cross_image(texels, cube)
+        disp = images.tonemap(np.clip(cross, 0, None), -np.log2(top))
+        negative = valid & (np.asarray(cross).min(axis=-1) < -1e-6 * top)
+        disp[negative] = (0.1, 0.2, 0.9)
+        disp[~valid] = 0.15
+        ax.imshow(np.clip(disp, 0, 1), interpolation="nearest")
+        ax.set_title(label, fontsize=9)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
 
 
 def compare_plot(table: dict, path: Path) -> None:
