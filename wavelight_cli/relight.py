@@ -40,8 +40,6 @@ class RelightOptions:
             raise InputError("--rotate and --light-exposure must be finite numbers", None, "fix the option")
         if self.view_camera is not None and self.view_pose is None:
             raise InputError("--view-camera needs --view (the new view's pose.json)", None, "add --view POSE.json")
-        if self.reference_mask is not None and self.reference is None and self.view_pose is not None:
-            raise InputError("--reference-mask needs --reference", None, "add --reference IMAGE")
 
 
 def view_of(scene: SceneFiles, opts: RelightOptions) -> View:
@@ -103,6 +101,9 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
     if reference is None and opts.view_pose is None and same_light:
         reference = scene.image  # the photo's own view and light: how well the model explains the photo
     mask_path = opts.reference_mask
+    if mask_path is not None and reference is None:
+        raise InputError("--reference-mask needs a reference (the photo is one only for its own view and light)",
+                         None, "add --reference IMAGE")
     cache = SceneCache(scene.root)
     stage = "relight" if opts.name == "relight" else f"relight-{opts.name}"
     with cache.lock(lock_wait, console.say):
@@ -148,6 +149,8 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             outputs.append(out / f"{opts.name}_residual.png")
             versus = compare_to_photo(values[keep], ref, _Pixels(data.samples.pixel[keep]), camera, outputs[-1])
             summary.update(versus, reference=str(ref_path), reference_mask=str(mask_path) if mask_path else None)
+        elif (out / f"{opts.name}_residual.png").exists():
+            (out / f"{opts.name}_residual.png").unlink()  # it belonged to an earlier comparison
         outputs.append(out / f"{opts.name}.json")
         write_json_atomic(outputs[-1], summary)
         seconds = time.monotonic() - t0
