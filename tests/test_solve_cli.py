@@ -27,7 +27,7 @@ from cli_helpers import (
 
 SOLVE_OUTPUTS = ("light_latlong.exr", "light_cross.exr", "light_cross.png", "observability.png", "coefficients.h5",
                  "relit.exr", "relit.png", "residual.png", "reflectance.json", "solve_report.json")
-COMPARE_OUTPUTS = ("compare.json", "compare.md", "compare.png", "compare_lights.png")
+COMPARE_OUTPUTS = ("compare.json", "compare.md", "compare.png", "compare_lights.png", "compare_lights.h5")
 COMPARE_BASES = ["wavelet", "quadtree", "discrete", "sh", "sh+", "points"]
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 KKT_TOL = 1e-6

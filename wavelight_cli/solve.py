@@ -418,13 +418,15 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                              "all_pixels_rmse": "relative RMSE of the final light (re-solved on all pixels)",
                              "seconds": "solve time after the normal equations",
                              "min_radiance_relative": "lowest texel radiance / highest (negative: not a light)"}}
-        outputs = [out / "compare.json", out / "compare.md", out / "compare.png", out / "compare_lights.png"]
+        outputs = [out / "compare.json", out / "compare.md", out / "compare.png", out / "compare_lights.png",
+                   out / "compare_lights.h5"]
         write_json_atomic(outputs[0], _jsonable(table))
         text = compare_markdown(table)
         with atomic_output(outputs[1]) as tmp:
             tmp.write_text(text)
         compare_plot(table, outputs[2])
         compare_lights_figure(lights, problem.data.cube, outputs[3])
+        _write_lights(outputs[4], lights, problem.data.cube)
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, {"rows": len(rows)})
         console.result(text.rstrip())
@@ -446,6 +448,19 @@ def compare_markdown(table: dict) -> str:
         lines.append(f"| {r['basis']} | {r['coefficients']} | {pct(r['fit_rmse'])} | {pct(r['held_out_rmse'])} | "
                      f"{pct(r['all_pixels_rmse'])} | {r['seconds']:.3f} | {round(r['min_radiance_relative'], 3) + 0.0:+.3f} |")
     return "\n".join(lines) + "\n"
+
+
+def _write_lights(path: Path, lights: list, cube) -> None:
+    """Each basis' texel light (datasets in the table's row order, named by basis) with the cube map."""
+    import h5py
+
+    with atomic_output(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update({"format": "wavelight-compare-lights-1", "resolution": cube.resolution,
+                            "hemisphere": cube.hemisphere, "units": "linear radiance per texel"})
+            for k, (label, texels) in enumerate(lights):
+                ds = f.create_dataset(f"{k:02d}_{label.split(' ')[0]}", data=np.asarray(texels, np.float32))
+                ds.attrs["label"] = label
 
 
 def compare_lights_figure(lights: list, cube, path: Path) -> None:
