@@ -33,6 +33,14 @@ def latlong(texels, cube, height=128):
     return cubemap.cube_to_latlong(np.asarray(texels, np.float64), cube, height)
 
 
+def timed(exe: Path, scene: Path, command: str, resolution: str, material: Path) -> float:
+    """Run one `wavelight` stage on the scene (quiet, true material); its wall time in seconds."""
+    t0 = time.perf_counter()
+    subprocess.run([str(exe), "-q", "-s", str(scene), command, "-R", resolution, "--material", str(material)],
+                   check=True, capture_output=True)
+    return time.perf_counter() - t0
+
+
 def main():
     import h5py
 
@@ -49,10 +57,7 @@ def main():
     normals = irradiance_normals()
     truth_E = irradiance(images.read_latlong(args.scene / "truth" / "env_latlong.exr"), normals)
     R = str(args.resolution)
-    t0 = time.perf_counter()
-    subprocess.run([str(exe), "-q", "-s", str(scene), "solve", "-R", R, "--material", str(material)], check=True,
-                   capture_output=True)
-    solve_seconds = time.perf_counter() - t0
+    solve_seconds = timed(exe, scene, "solve", R, material)
     report = json.loads((scene / "out" / "solve_report.json").read_text())
     levels = []
     with h5py.File(scene / "out" / "coefficients.h5", "r") as f:
@@ -63,10 +68,7 @@ def main():
             levels.append({"level": lv["level"], "coefficients": lv["coefficients"], "seconds": lv["seconds"],
                            "fit_rmse": lv["fit_rmse"], "held_out_rmse": lv["held_out_rmse"],
                            "light_err": light_error(latlong(texels, cube), truth_E, normals)})
-    t0 = time.perf_counter()
-    subprocess.run([str(exe), "-q", "-s", str(scene), "compare", "-R", R, "--material", str(material)], check=True,
-                   capture_output=True)
-    compare_seconds = time.perf_counter() - t0
+    compare_seconds = timed(exe, scene, "compare", R, material)
     table = json.loads((scene / "out" / "compare.json").read_text())
     bases = []
     with h5py.File(scene / "out" / "compare_lights.h5", "r") as f:

@@ -159,3 +159,14 @@ def scene(baseline, tmp_path):
     from cli_helpers import copy_scene
 
     return copy_scene(baseline, tmp_path / "scene")
+
+
+@pytest.fixture(scope="session")
+def lambert_solved(tmp_path_factory):
+    """The sample scene after `solve -R 8 --reflectance lambert` (made once per session; read-only:
+    copy it with cli_helpers.copy_scene before changing anything)."""
+    from cli_helpers import RES, copy_sample, invoke, ok
+
+    scene = copy_sample(tmp_path_factory.mktemp("lambert_solved") / "scene")
+    ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
+    return scene

@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from cli_helpers import RES, check_bad_input, copy_sample, invoke, ok
+from cli_helpers import check_bad_input, invoke, ok
 from pipelines import cubemap, exports as ex, images
 
 
@@ -111,11 +111,9 @@ def test_real_mitsuba_reads_our_export_when_installed():
     assert np.median(rel) < 0.005 and rel.max() < 0.03
 
 
-@pytest.fixture(scope="module")
-def solved(tmp_path_factory):
-    scene = copy_sample(tmp_path_factory.mktemp("export") / "scene")
-    ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
-    return scene
+@pytest.fixture
+def solved(lambert_solved):
+    return lambert_solved  # the shared sample after a Lambertian solve at R = 8 (conftest.py)
 
 
 def test_export_command_writes_every_format_and_they_read_back(solved, tmp_path):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import check_bad_input, copy_sample, invoke, ok
+from cli_helpers import check_bad_input, invoke, ok
 from pipelines import images
 from pipelines import insert as ins
 from pipelines.scene import load_mesh
@@ -86,11 +86,9 @@ def test_outside_the_shadow_the_photo_changes_only_by_the_sky_the_sphere_hides(i
     assert np.mean(change < -1e-4) > 0.5  # most points lose a little sky to the sphere
 
 
-@pytest.fixture(scope="module")
-def solved(tmp_path_factory):
-    scene = copy_sample(tmp_path_factory.mktemp("ins") / "scene")
-    ok(invoke(scene, "solve", "--resolution", "8", "--reflectance", "lambert"))
-    return scene
+@pytest.fixture
+def solved(lambert_solved):
+    return lambert_solved  # the shared sample after a Lambertian solve at R = 8 (conftest.py)
 
 
 def test_insert_with_the_recovered_light_on_the_sample(solved, tmp_path):

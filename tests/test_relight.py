@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import RES, check_bad_input, copy_sample, invoke, ok
+from cli_helpers import check_bad_input, invoke, ok
 from pipelines import cubemap, images
 
 SCENES = Path(__file__).parent / "data" / "scenes"
@@ -96,11 +96,9 @@ def test_rotate_latlong_keeps_power_and_moves_features():
     np.testing.assert_allclose(half[5, 3:5], [0.5, 0.5])
 
 
-@pytest.fixture(scope="module")
-def sample(tmp_path_factory):
-    scene = copy_sample(tmp_path_factory.mktemp("relight") / "scene")
-    ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
-    return scene
+@pytest.fixture
+def sample(lambert_solved):
+    return lambert_solved  # the shared sample after a Lambertian solve at R = 8 (conftest.py)
 
 
 def test_relight_defaults_to_the_solve_resolution_and_a_new_light_scales(sample, tmp_path):

@@ -8,13 +8,12 @@ import shutil
 
 import pytest
 
-from cli_helpers import RES, assert_one_error_line, copy_sample, invoke, ok
+from cli_helpers import RES, assert_one_error_line, copy_sample, copy_scene, invoke, ok
 
 
 @pytest.fixture(scope="module")
-def reported(tmp_path_factory):
-    scene = copy_sample(tmp_path_factory.mktemp("report") / "scene")
-    ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
+def reported(tmp_path_factory, lambert_solved):
+    scene = copy_scene(lambert_solved, tmp_path_factory.mktemp("report") / "scene")
     ok(invoke(scene, "compare", "--resolution", RES))
     ok(invoke(scene, "relight", "--name", "turned", "--rotate", "90"))
     ok(invoke(scene, "insert", "--at", "0.9", "-0.5", "0.3", "--radius", "0.25"))

@@ -104,6 +104,11 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
             raise click.ClickException(exc.line()) from None
 
 
+force_option = click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+exposure_option = click.option("--exposure", type=float, default=None,
+                               help="PNG exposure in stops (default: automatic).")
+
+
 def visibility_options(f):
     """Options of the visibility stage, shared by every command that needs it."""
     opts = [
@@ -202,7 +207,7 @@ def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_dista
 
 @_command("visibility")
 @visibility_options
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_obj
 def visibility_cmd(obj, force, **kw):
     """Ray-cast the shadow of every light direction at every used pixel (cached, resumable)."""
@@ -250,9 +255,9 @@ def _material_or_fitted(kw, scene):
 @click.option("--light", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Lat-long light (EXR/HDR, DESIGN convention: row 0 = zenith, +Z up).")
 @material_options
-@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@exposure_option
 @visibility_options
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_obj
 def render_cmd(obj, light, exposure, force, **kw):
     """Render the input view under a given light and material -> out/render.exr, out/render.png."""
@@ -321,9 +326,9 @@ def reflectance_options(f):
 @solve_options
 @reflectance_options
 @material_options
-@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@exposure_option
 @visibility_options
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_obj
 def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
@@ -345,7 +350,7 @@ def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_
 @solve_options
 @material_options
 @visibility_options
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_obj
 def compare_cmd(obj, force, **kw):
     """Solve with every basis on this scene -> out/compare.md (table), compare.json, compare.png (speed vs error).
@@ -379,9 +384,9 @@ def compare_cmd(obj, force, **kw):
 @click.option("--name", default="relight", show_default=True,
               help="Output names: out/NAME.exr, NAME.png, NAME_residual.png, NAME.json.")
 @material_options
-@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
+@exposure_option
 @visibility_options
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_context
 def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, name, exposure,
                 force, **kw):
@@ -423,8 +428,8 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
 @click.option("--name", default="insert", show_default=True, help="Output names: out/NAME.exr/png, NAME_render.exr, "
               "NAME_shadow.png, NAME.json.")
 @material_options
-@click.option("--exposure", type=float, default=None, help="PNG exposure in stops (default: automatic).")
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@exposure_option
+@force_option
 @click.pass_obj
 def insert_cmd(obj, **kw):
     """Put a virtual object into the photo: shaded by the recovered light with its own shadows, its
@@ -449,7 +454,7 @@ def insert_cmd(obj, **kw):
 @click.option("--height", type=int, default=None,
               help="Rows of the lat-long exports [default: 4 x the cube map's R, at least 64].")
 @click.option("--face-size", type=int, default=None, help="Cube face size [default: the solve's R].")
-@click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
+@force_option
 @click.pass_obj
 def export_cmd(obj, formats, light, height, face_size, force):
     """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (see README: Exports)."""
