@@ -22,3 +22,11 @@ class InputError(Exception):
         where = f"{self.path}: " if self.path is not None else ""
         fix = f". {self.fix[:1].upper()}{self.fix[1:].rstrip('.')}." if self.fix else "."
         return f"{where}{self.problem}{fix}"
+
+
+def require_file(path: str | Path | None, fix: str) -> None:
+    """Raise InputError unless `path` is an existing regular file (a folder of that name says so)."""
+    if path is not None and Path(path).is_dir():
+        raise InputError("is a folder, not a file", path, f"move the folder away, then {fix[:1].lower()}{fix[1:]}")
+    if path is None or not Path(path).is_file():
+        raise InputError("file not found", path, fix)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, require_file
 from .fileio import atomic_output
 
 FLOAT_FORMATS = ("half", "float", "double")
@@ -57,8 +57,7 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
 def _open(path: Path):
     import OpenImageIO as oiio
 
-    if not path.is_file():
-        raise InputError("file not found", path, "check the path, or put the file in the scene folder")
+    require_file(path, "check the path, or put the file in the scene folder")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # keep colour as stored: alpha is dropped, not multiplied in
     buf = oiio.ImageBuf(str(path), 0, 0, config)

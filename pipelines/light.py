@@ -38,6 +38,7 @@ from . import haar
 from .cubemap import CubeMap, direction_to_spherical
 from .haar import HaarTree
 from .nnls import NNLSResult, nnls_gram
+from .fileio import h5_file
 from .normal_equations import NormalEquations, SystemPart
 from .threads import blas_threads
 
@@ -79,6 +80,62 @@ def observability(ne: NormalEquations) -> tuple[np.ndarray, np.ndarray]:
     if dmax <= 0:
         return np.zeros_like(d), np.ones(len(d), bool)
     return np.sqrt(d / dmax), d <= UNOBSERVABLE_TOL * dmax
+
+
+LOW_FREQUENCY_SHARE = 0.98  # a clamped cosine keeps ~99 % of its energy in SH l <= 2 (Ramamoorthi & Hanrahan)
+POOR_FIT = 0.3  # relative RMSE against the photo above which the fit explains little of it
+
+
+def low_frequency_share(ne: NormalEquations, cube: CubeMap) -> tuple[float, int]:
+    """How much of what the pixels see of the light lies in its 9 lowest spherical harmonics.
+
+    Each pixel's transport row t (per unit texel radiance) is a function t_i / w_i of direction
+    (w the texel solid angles); its energy is sum t_i^2 / w_i, so over all pixels tr(W^-1 G).
+    Its part in the span of SH l <= 2 (orthonormalised on the cube's directions with weights w) is
+    tr(Q'GQ). Returns (that share, 0..1; the rank of Q'GQ, how many of the 9 components the pixels
+    determine). A diffuse, shadow-free scene has a share near 1: only those 9 numbers of the light
+    are observable (the paper's point: cast shadows carry the rest).
+    """
+    G = combine(ne.fit, ne.held_out).G
+    G = G if G.ndim == 2 else G.mean(axis=0)
+    w = cube.solid_angles.astype(np.float64)
+    Y = real_sh(2, cube.directions)
+    M = Y.T @ (w[:, None] * Y)
+    evals, evecs = np.linalg.eigh(M)
+    keep = evals > 1e-9 * evals.max()
+    Q = Y @ (evecs[:, keep] / np.sqrt(evals[keep]))  # Q' W Q = I
+    total = float(np.sum(np.diag(G) / w))
+    if total <= 0:
+        return 0.0, 0
+    low = Q.T @ G @ Q
+    lev = np.linalg.eigvalsh((low + low.T) / 2)
+    rank = int(np.sum(lev > 1e-8 * max(float(lev.max(initial=0.0)), 1e-300)))
+    return float(np.trace(low)) / total, rank
+
+
+def diagnose(ne: NormalEquations, solution: LightSolution, cube: CubeMap, relit_error: float | None) -> list[str]:
+    """Warnings about what the photo can and cannot tell of this light (empty when all is well)."""
+    notes = []
+    pixels = ne.fit.n_pixels + ne.held_out.n_pixels
+    if pixels < solution.n_coefficients:
+        notes.append(f"{pixels} pixels for {solution.n_coefficients} light coefficients: the light is "
+                     "underdetermined; it is one of many that fit these pixels equally well")
+    share, rank = low_frequency_share(ne, cube)
+    if rank < 9:
+        notes.append(f"the pixels determine only {rank} of the 9 lowest-frequency components of the light "
+                     "(too few distinct surface normals, e.g. a single plane): only relighting of surfaces "
+                     "like these is reliable")
+    elif share >= LOW_FREQUENCY_SHARE:
+        notes.append(f"{100 * share:.1f} % of what the pixels see of the light is its 9 lowest-frequency "
+                     "components (few cast shadows): only a blurred light is observable, and detail finer than "
+                     "that in the result is not supported by the photo")
+    if not np.any(solution.light > 0):
+        notes.append("the recovered light is zero: the used pixels are dark, or lit only from directions they "
+                     "cannot see")
+    elif relit_error is not None and relit_error > POOR_FIT:
+        notes.append(f"the fit explains little of the photo (relative error {100 * relit_error:.0f} %): the photo "
+                     "may be mostly noise, or the mesh, pose, camera or material may not match it (see residual.png)")
+    return notes
 
 
 # -- records ------------------------------------------------------------------------------------
@@ -550,9 +607,7 @@ def write_solution(path, solution: LightSolution, cube: CubeMap, unobservable: n
     light before unobservable texels are zeroed, `light` after); `unobservable`
     (N,) bool; `levels/NN/` the same per refinement level, with its errors as attributes.
     """
-    import h5py
-
-    with h5py.File(path, "w") as f:
+    with h5_file(path) as f:
         f.attrs.update({"format": SOLUTION_FORMAT, "basis": solution.basis, "resolution": cube.resolution,
                         "hemisphere": cube.hemisphere, "chosen_level": solution.chosen,
                         "units": "linear radiance per texel (light x albedo when kd = 1)"})

@@ -40,6 +40,7 @@ ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by l
 MAX_PAIRS = 48_000_000  # (pixel, lit texel) pairs held for the LM (2 float32 arrays: ~400 MB)
 LIT_TOL = 0.0  # texels whose light is exactly zero (all channels) add nothing and are skipped
 _CHUNK = 4096  # pixel rows per evaluation chunk (keeps temporaries small)
+MIN_FIT_PIXELS = 30  # a specular fit has 7 unknowns (kd, ks RGB and n): fewer pixels cannot pin them
 
 
 class FitError(ValueError):
@@ -128,8 +129,10 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     P = vis.n_pixels
     use = np.ones(P, bool) if use is None else np.asarray(use, bool)
     held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
-    if not (use & ~held_out).any():
-        raise FitError("no pixel is left to fit the reflectance to")
+    n_fit = int((use & ~held_out).sum())
+    if n_fit < MIN_FIT_PIXELS:
+        raise FitError(f"{n_fit} pixels are left to fit the reflectance to; a specular term (7 unknowns) needs "
+                       f"at least {MIN_FIT_PIXELS}")
     rows = _pixel_subset(use, max(1, max_pairs // len(lit)))
     s = vis.samples
     cube = vis.cube

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, require_file
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 
@@ -83,12 +83,13 @@ class Mesh:
 
 
 def _load_json(path: Path, what: str) -> dict:
-    if not path.is_file():
-        raise InputError("file not found", path, f"create the {what} file (see README: scene folder)")
+    require_file(path, f"create the {what} file (see README: scene folder)")
     try:
         data = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"not valid JSON ({exc})", path, "fix the syntax") from None
+    except OSError as exc:
+        raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
     if not isinstance(data, dict):
         raise InputError("expected a JSON object", path, "see README for the file format")
     return data
@@ -158,12 +159,13 @@ def read_pose(path: str | Path) -> Pose:
 def read_correspondences(path: str | Path, min_points: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Read `u,v,x,y,z` rows -> (uv (n, 2), xyz (n, 3)) float64."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path, "create correspondences.csv with header u,v,x,y,z")
+    require_file(path, "create correspondences.csv with header u,v,x,y,z")
     try:
         rows = list(csv.reader(path.read_text().splitlines()))
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path, "save it as plain CSV with header u,v,x,y,z") from None
+    except OSError as exc:
+        raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
     rows = [r for r in rows if r and any(c.strip() for c in r)]
     header = [c.strip().lower() for c in rows[0]] if rows else []
     if header != ["u", "v", "x", "y", "z"]:
@@ -202,13 +204,13 @@ def load_mesh(path: str | Path) -> Mesh:
     """Load a mesh with trimesh; a multi-part file (scene) becomes one mesh.
 
     Vertex normals from the file are kept as shading normals (else area-weighted face normals).
-    Degenerate (zero-area) and duplicate faces are removed and noted.
+    Degenerate (zero-area) and duplicate faces are removed, and OBJ polygons split into triangles,
+    with a note each.
     """
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path, "check the mesh path")
+    require_file(path, "check the mesh path")
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
@@ -230,6 +232,11 @@ def load_mesh(path: str | Path) -> Mesh:
         raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
     normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
     notes = []
+    if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
+        with open(path, "rb") as f:
+            polygons = sum(1 for line in f if line.startswith(b"f ") and len(line.split()) > 4)
+        if polygons:
+            notes.append(f"split {polygons} polygons of more than 3 corners into triangles")
     v = vertices[faces]
     area2 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     scale = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))

@@ -22,6 +22,7 @@ import numpy as np
 from .camera import PixelSamples
 from .cubemap import CubeMap
 from .errors import InputError
+from .fileio import h5_file
 
 FORMAT = "wavelight-visibility-1"
 PIXEL_FIELDS = ("pixel", "position", "normal", "geometric_normal", "view", "face")
@@ -163,11 +164,10 @@ def compute_visibility(backend, samples: PixelSamples, cube: CubeMap, supersampl
 def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, supersample: int,
                      chunks: Iterator[np.ndarray], rows_per_chunk: int, attrs: dict | None = None) -> None:
     """Write the file at `path` (the caller renames it into place) from stored-row chunks."""
-    import h5py
 
     n_tex = cube.n_texels
     width = (n_tex + 7) // 8 if supersample == 1 else n_tex
-    with h5py.File(path, "w", track_order=True) as f:
+    with h5_file(path, track_order=True) as f:
         f.attrs.update({"format": FORMAT, "resolution": cube.resolution, "hemisphere": cube.hemisphere,
                         "supersample": supersample, "n_pixels": len(samples), "n_texels": n_tex,
                         "encoding": "bits" if supersample == 1 else "fraction", **(attrs or {})})

@@ -146,6 +146,21 @@ def _nothing(scene):
     pass
 
 
+def _folder(name):
+    """The file replaced by a folder of its name: unreadable as a file (permissions cannot be
+    used: the tests may run as root, who reads everything)."""
+    def mutate(scene):
+        if (scene / name).exists():
+            (scene / name).unlink()
+        (scene / name).mkdir()
+    return mutate
+
+
+def _csv_duplicate(scene):
+    lines = (scene / "correspondences.csv").read_text().splitlines()
+    (scene / "correspondences.csv").write_text("\n".join(lines + [lines[1]]) + "\n")
+
+
 GARBAGE = np.random.default_rng(7).bytes(4096)
 VIS = lambda s: ["visibility", "--resolution", RES]  # noqa: E731
 CHECK = lambda s: ["check"]  # noqa: E731
@@ -213,6 +228,12 @@ BAD_INPUT = [
     ("material-json-array", _write("mat.json", "[0.8, 0.8, 0.8]"), _render_material("mat.json"), _file("mat.json")),
     ("resolution-not-power-of-two", _nothing, lambda s: ["visibility", "--resolution", "12"], _text("--resolution")),
     ("resolution-not-power-of-two-render", _nothing, lambda s: render_args(s, res="12"), _text("--resolution")),
+    ("resolution-negative", _nothing, lambda s: ["visibility", "--resolution", "-8"], _text("--resolution")),
+    ("camera-is-a-folder", _folder("camera.json"), VIS, _file("camera.json")),
+    ("pose-is-a-folder", _folder("pose.json"), VIS, _file("pose.json")),
+    ("csv-is-a-folder", _folder("correspondences.csv"), CHECK, _file("correspondences.csv")),
+    ("toml-is-a-folder", _folder("scene.toml"), VIS, _file("scene.toml")),
+    ("csv-duplicate-rows", _csv_duplicate, CHECK, _file("correspondences.csv")),
     ("supersample-zero", _nothing, lambda s: ["visibility", "--resolution", RES, "--supersample", "0"],
      _text("--supersample")),
     ("toml-unknown-section", _write("scene.toml", "[solver]\niterations = 3\n"), VIS, _file("scene.toml")),

@@ -566,6 +566,17 @@ def _photo_all_clipped(scene):
     write_png(scene / "image.png", np.ones((144, 192, 3)), already_display=True)
 
 
+def _photo_black(scene):
+    from pipelines.images import write_exr
+
+    write_exr(scene / "image.exr", np.zeros((144, 192, 3), np.float32))
+
+
+def _photo_folder(scene):
+    (scene / "image.exr").unlink()
+    (scene / "image.exr").mkdir()
+
+
 def _toml(text):
     def mutate(scene):
         (scene / "scene.toml").write_text(text)
@@ -606,6 +617,10 @@ SOLVE_BAD_INPUT = [
     ("compare-bad-reflectance-json", _write_out("reflectance.json", "{not json"), ["compare"], "out/reflectance.json"),
     ("compare-photo-wrong-size", _photo_wrong_size, ["compare"], "image.exr"),
     ("compare-photo-missing", _delete_photos, ["compare"], "image.exr"),
+    ("photo-all-black", _photo_black, ["solve"], "image.exr"),
+    ("photo-is-a-folder", _photo_folder, ["solve"], "image.exr"),
+    ("levels-beyond-resolution", _nothing, ["solve", "--levels", "6"], "--levels"),
+    ("points-beyond-texels", _nothing, ["solve", "--basis", "points", "--levels", "193"], "--levels"),
 ]
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipelines.errors import InputError
-from pipelines.fileio import atomic_output
+from pipelines.fileio import atomic_output, is_temporary, output_set  # noqa: F401 (output_set: for the stages)
 
 CACHE_DIR = ".wavelight"
 MANIFEST = "manifest.json"
@@ -35,6 +35,15 @@ def file_digest(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def _package_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("wavelight")
+    except Exception:  # not installed (running from a source tree)
+        return "unknown"
 
 
 def _fmt(value) -> str:
@@ -86,10 +95,13 @@ class SceneCache:
     def record_of(self, stage: str) -> dict | None:
         return self.manifest()["stages"].get(stage)
 
-    def status(self) -> list[dict]:
+    def status(self, versions: dict[str, int] | None = None) -> list[dict]:
         """Every recorded stage checked against the current files: fresh or stale, and why.
-        A stage whose upstream is stale is stale too (its next run will rerun it)."""
+        A stage whose upstream is stale is stale too (its next run will rerun it). `versions`: the
+        current version of each stage kind (`visibility` covers `visibility-view-...`), so that a
+        stage recorded by another version of wavelight shows as stale."""
         stages = self.manifest()["stages"]
+        versions = versions or {}
         reasons: dict[str, str | None] = {}
 
         def check(stage: str) -> str | None:
@@ -98,7 +110,12 @@ class SceneCache:
             reasons[stage] = None  # guards against cycles in a hand-edited manifest
             rec = stages[stage]
             reason = None
+            current = versions.get(stage, versions.get(stage.split("-")[0]))
+            if current is not None and rec.get("version") != current:
+                reason = f"stage version changed: {rec.get('version')} -> {current}"
             for name, digest in rec.get("inputs", {}).items():
+                if reason is not None:
+                    break
                 rel = rec.get("input_paths", {}).get(name)
                 path = None if rel is None else self.scene_dir / rel
                 now = file_digest(path) if path is not None and path.is_file() else None
@@ -188,6 +205,7 @@ class SceneCache:
             "input_paths": decision.input_paths, "upstream": decision.upstream,
             "outputs": {self.relative(p): file_digest(p) for p in outputs},
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "seconds": round(seconds, 3),
+            "wavelight": _package_version(),
             "summary": summary or {},
         }
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -204,6 +222,18 @@ class SceneCache:
             return
         raise InputError(f"exists and was not written by wavelight {stage} as it is now (written or edited by hand)",
                          path, f"move it away, or pass {option} to replace it")
+
+    def sweep_temporaries(self) -> list[Path]:
+        """Delete the temp files a killed run left (`fileio.is_temporary` names) in the scene folder,
+        its out/ tree and the cache. Only called under the scene lock, when no other run writes."""
+        found = [p for p in self.scene_dir.glob(".*") if p.is_file() and is_temporary(p.name)]
+        for d in (self.scene_dir / "out", self.dir):
+            if d.is_dir():
+                found += [p for p in d.rglob(".*") if p.is_file() and is_temporary(p.name)]
+        for p in found:
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+        return found
 
     # -- locking --------------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -243,6 +273,7 @@ class SceneCache:
                 f.write(f"{os.getpid()}\n")
                 f.flush()
                 _HELD[held] = 1
+                self.sweep_temporaries()
                 yield
             finally:
                 _HELD.pop(held, None)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipelines.errors import InputError
 
-from .cache import SceneCache, atomic_output, write_json_atomic
+from .cache import SceneCache, atomic_output, output_set, write_json_atomic
 from .scenefiles import SceneFiles
 from .stages import Console, _require
 
@@ -59,20 +59,21 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
         summary = {"source": "recovered" if light_path is None else str(light_path),
                    "energy_rgb": (env * omega).sum(axis=(0, 1)).tolist(), "latlong_height": env.shape[0],
                    "face_size": cube.resolution}
-        if "mitsuba" in formats:
-            outputs.append(images.write_exr(out / "mitsuba" / "light.exr", ex.to_mitsuba(env)))
-            xml = out / "mitsuba" / "emitter.xml"
-            with atomic_output(xml) as tmp:
-                tmp.write_text(ex.mitsuba_xml("light.exr"))
-            outputs.append(xml)
-        if "blender" in formats:
-            outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
-        if "opengl" in formats:
-            for name, face in ex.to_gl_faces(texels, cube).items():
-                outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
-        outputs.append(out / "export.json")
-        write_json_atomic(outputs[-1], {**summary, "files": [cache.relative(p) for p in outputs[:-1]],
-                                        "conventions": "see pipelines/exports.py and README (Exports)"})
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            if "mitsuba" in formats:
+                outputs.append(images.write_exr(out / "mitsuba" / "light.exr", ex.to_mitsuba(env)))
+                xml = out / "mitsuba" / "emitter.xml"
+                with atomic_output(xml) as tmp:
+                    tmp.write_text(ex.mitsuba_xml("light.exr"))
+                outputs.append(xml)
+            if "blender" in formats:
+                outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
+            if "opengl" in formats:
+                for name, face in ex.to_gl_faces(texels, cube).items():
+                    outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
+            outputs.append(out / "export.json")
+            write_json_atomic(outputs[-1], {**summary, "files": [cache.relative(p) for p in outputs[:-1]],
+                                            "conventions": "see pipelines/exports.py and README (Exports)"})
         cache.record(d, outputs, time.monotonic() - t0, summary)
         console.result(f"export: {', '.join(formats)} -> {cache.relative(out)}/ "
                        f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])})")

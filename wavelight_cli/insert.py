@@ -11,7 +11,7 @@ import numpy as np
 
 from pipelines.errors import InputError
 
-from .cache import SceneCache, write_json_atomic
+from .cache import SceneCache, output_set, write_json_atomic
 from .scenefiles import SceneFiles
 from .stages import Console, _require, heat_map, load_photo
 
@@ -112,19 +112,20 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
         if not r.object_mask.any():
             raise InputError(f"the object at {tuple(opts.at)} is not in the photo", None,
                              "place it where the camera sees it (--at, world coordinates)")
-        out = scene.out
-        outputs = [out / f"{opts.name}.exr", out / f"{opts.name}.png", out / f"{opts.name}_render.exr",
-                   out / f"{opts.name}_shadow.png"]
-        images.write_exr(outputs[0], r.composite)
-        images.write_png(outputs[1], r.composite, opts.exposure)
-        images.write_exr(outputs[2], r.with_object)
-        images.write_png(outputs[3], heat_map(np.clip(-r.shadow, 0, None), 0.5), already_display=True)
-        summary = {"object": opts.object, "at": list(opts.at), "object_pixels": int(r.object_mask.sum()),
-                   "shadowed_pixels_5pct": int((r.shadow < -0.05).sum()), "darkest_shadow": float(r.shadow.min()),
-                   "resolution": cube.resolution, "light": "recovered" if opts.light is None else str(opts.light),
-                   "object_material": obj_material.to_json(), "scene_material": material.to_json()}
-        outputs.append(out / f"{opts.name}.json")
-        write_json_atomic(outputs[-1], summary)
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            out = scene.out
+            outputs = [out / f"{opts.name}.exr", out / f"{opts.name}.png", out / f"{opts.name}_render.exr",
+                       out / f"{opts.name}_shadow.png"]
+            images.write_exr(outputs[0], r.composite)
+            images.write_png(outputs[1], r.composite, opts.exposure)
+            images.write_exr(outputs[2], r.with_object)
+            images.write_png(outputs[3], heat_map(np.clip(-r.shadow, 0, None), 0.5), already_display=True)
+            summary = {"object": opts.object, "at": list(opts.at), "object_pixels": int(r.object_mask.sum()),
+                       "shadowed_pixels_5pct": int((r.shadow < -0.05).sum()), "darkest_shadow": float(r.shadow.min()),
+                       "resolution": cube.resolution, "light": "recovered" if opts.light is None else str(opts.light),
+                       "object_material": obj_material.to_json(), "scene_material": material.to_json()}
+            outputs.append(out / f"{opts.name}.json")
+            write_json_atomic(outputs[-1], summary)
         cache.record(d, outputs, time.monotonic() - t0, summary)
         console.result(f"insert: {summary['object_pixels']} object pixels, shadow (> 5 % darker) on "
                        f"{summary['shadowed_pixels_5pct']} pixels -> {cache.relative(outputs[1])}")

@@ -6,7 +6,9 @@ Heavy modules (cv2, trimesh, h5py, embreex, OpenImageIO) are imported inside the
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import sys
 import tomllib
 from pathlib import Path
@@ -21,14 +23,47 @@ from .scenefiles import scene_folder
 VIS_SECTION = "visibility"  # scene.toml section shared by every command that needs visibility
 
 
+_OS_FIXES = {
+    errno.ENOSPC: "free some disk space and rerun (earlier results and finished stages are kept)",
+    errno.EDQUOT: "free some space within your quota and rerun (earlier results and finished stages are kept)",
+    errno.EACCES: "check the permissions of the file and its folder",
+    errno.EPERM: "check the permissions of the file and its folder",
+    errno.EROFS: "copy the scene to a writable folder",
+    errno.EISDIR: "a folder is where a file should be: move it away",
+    errno.ENOTDIR: "a file is where a folder should be: move it away",
+    errno.ENOENT: "check the path",
+}
+
+
+def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
+    """One error line for a failure of the file system (full disk, permissions, ...); None when
+    `exc` is not one (that is a bug, and keeps its traceback). HDF5 reports a full disk as a
+    RuntimeError naming errno 28, not as an OSError."""
+    code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
+    if code is None and "No space left on device" in str(exc):
+        code = errno.ENOSPC
+    if code is None or code not in _OS_FIXES and not isinstance(exc, OSError):
+        return None
+    where = getattr(exc, "filename", None) or scene or "."
+    problem = os.strerror(code) if code else str(exc)
+    fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
+    return InputError(problem.lower() if code else problem, where, fix).line()
+
+
 class WavelightGroup(click.Group):
-    """Turns InputError into one `Error: ...` line and exit code 1 (no traceback)."""
+    """Turns InputError and file-system failures into one `Error: ...` line and exit code 1 (no
+    traceback)."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
         except InputError as exc:
             raise click.ClickException(exc.line()) from None
+        except (OSError, RuntimeError) as exc:
+            line = os_error_line(exc, (ctx.obj or {}).get("scene"))
+            if line is None:
+                raise
+            raise click.ClickException(line) from None
         except KeyboardInterrupt:
             click.echo("interrupted: the cache keeps finished work; rerun to continue", err=True)
             sys.exit(130)
@@ -51,12 +86,14 @@ def _param_for_key(cmd: click.Command, key: str) -> click.Parameter | None:
 
 def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
     path = scene_dir / "scene.toml"
-    if not path.is_file():
+    if not path.exists():
         return {}
     try:
         data = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid TOML ({exc})", path, "fix the syntax") from None
+    except OSError as exc:
+        raise InputError(f"cannot read it ({exc.strerror})", path, "make it a readable text file") from None
     group = ctx.command
     default_map: dict = {}
     for section, values in data.items():
@@ -491,10 +528,15 @@ def check_cmd(obj, **kw):
 @click.pass_obj
 def status_cmd(obj, as_json):
     """Show each cached stage: fresh or stale, and why."""
+    from . import calibrate, export, insert, register, relight, solve
     from .cache import SceneCache
 
+    versions = {"calibrate": calibrate.CALIBRATE_VERSION, "register": register.REGISTER_VERSION,
+                "visibility": stages.VISIBILITY_VERSION, "render": stages.RENDER_VERSION,
+                "solve": solve.SOLVE_VERSION, "compare": solve.COMPARE_VERSION, "relight": relight.RELIGHT_VERSION,
+                "insert": insert.INSERT_VERSION, "export": export.EXPORT_VERSION}
     scene = scene_folder(obj["scene"])
-    rows = SceneCache(scene.root).status()
+    rows = SceneCache(scene.root).status(versions)
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return

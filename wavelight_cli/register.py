@@ -10,7 +10,7 @@ import numpy as np
 
 from pipelines.errors import InputError
 
-from .cache import SceneCache, write_json_atomic
+from .cache import SceneCache, output_set, write_json_atomic
 from .scenefiles import SceneFiles
 
 REGISTER_VERSION = 1
@@ -162,9 +162,10 @@ def register_stage(scene: SceneFiles, opts: RegisterOptions, console, force: boo
                     "1-sigma from the clicks alone (the edge refinement, when accepted, is tighter)",
         }})
         outline = cam.mesh_outline(camera, pose, mesh, backend)
-        overlay = scene.out / "register_overlay.png"
-        images.write_png(overlay, _overlay(photo, outline, uv, res, r.inliers), already_display=True)
-        write_json_atomic(scene.pose, pose.to_json())
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            overlay = scene.out / "register_overlay.png"
+            images.write_png(overlay, _overlay(photo, outline, uv, res, r.inliers), already_display=True)
+            write_json_atomic(scene.pose, pose.to_json())
         seconds = time.monotonic() - t0
         cache.record(d, [scene.pose, overlay], seconds,
                      {"rms_px": rms, "inliers": int(r.inliers.sum()), "points": len(uv),

@@ -13,7 +13,7 @@ import numpy as np
 
 from pipelines.errors import InputError
 
-from .cache import SceneCache, file_digest, write_json_atomic
+from .cache import SceneCache, file_digest, output_set, write_json_atomic
 from .scenefiles import SceneFiles
 from .stages import (Console, View, VisibilityOptions, _require, compare_to_photo, load_photo, photo_view,
                      visibility_stage)
@@ -135,24 +135,25 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
         light, source = _light(scene, opts, data.cube)
         values = rd.render(data, light, material)
         img = rd.pixels_to_image(values, data.samples.pixel, camera.height, camera.width)
-        out = scene.out
-        outputs = [out / f"{opts.name}.exr", out / f"{opts.name}.png"]
-        images.write_exr(outputs[0], img)
-        images.write_png(outputs[1], img, opts.exposure)
-        summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
-                   "view": view.name or "photo", "material": material.to_json(), "pixels": int(len(values)),
-                   "resolution": data.cube.resolution}
-        if ref is not None:
-            keep = np.ones(len(values), bool)
-            if mask is not None:
-                keep = mask[data.samples.pixel[:, 0], data.samples.pixel[:, 1]]
-            outputs.append(out / f"{opts.name}_residual.png")
-            versus = compare_to_photo(values[keep], ref, _Pixels(data.samples.pixel[keep]), camera, outputs[-1])
-            summary.update(versus, reference=str(ref_path), reference_mask=str(mask_path) if mask_path else None)
-        elif (out / f"{opts.name}_residual.png").exists():
-            (out / f"{opts.name}_residual.png").unlink()  # it belonged to an earlier comparison
-        outputs.append(out / f"{opts.name}.json")
-        write_json_atomic(outputs[-1], summary)
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            out = scene.out
+            outputs = [out / f"{opts.name}.exr", out / f"{opts.name}.png"]
+            images.write_exr(outputs[0], img)
+            images.write_png(outputs[1], img, opts.exposure)
+            summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
+                       "view": view.name or "photo", "material": material.to_json(), "pixels": int(len(values)),
+                       "resolution": data.cube.resolution}
+            if ref is not None:
+                keep = np.ones(len(values), bool)
+                if mask is not None:
+                    keep = mask[data.samples.pixel[:, 0], data.samples.pixel[:, 1]]
+                outputs.append(out / f"{opts.name}_residual.png")
+                versus = compare_to_photo(values[keep], ref, _Pixels(data.samples.pixel[keep]), camera, outputs[-1])
+                summary.update(versus, reference=str(ref_path), reference_mask=str(mask_path) if mask_path else None)
+            elif (out / f"{opts.name}_residual.png").exists():
+                (out / f"{opts.name}_residual.png").unlink()  # it belonged to an earlier comparison
+            outputs.append(out / f"{opts.name}.json")
+            write_json_atomic(outputs[-1], summary)
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, summary)
         what = f"{'recovered light' if source == 'recovered' else Path(source).name}"

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.errors import InputError
+from pipelines.fileio import h5_file
 
-from .cache import SceneCache, atomic_output, write_json_atomic
+from .cache import SceneCache, atomic_output, output_set, write_json_atomic
 from .scenefiles import SceneFiles
 from .stages import (Console, VisibilityOptions, compare_to_photo, heat_map, load_photo, upscale, visibility_stage,
                      write_light)
@@ -45,6 +46,15 @@ class SolveOptions:
             if n < 1:
                 raise InputError(f"--levels must be 'auto' or a positive count, got {self.levels!r}", None,
                                  "use --levels auto (default) or e.g. --levels 4")
+            # the coarse-to-fine tree: the tile roots, one level per halving of the largest tile,
+            # and one more where pruned leaves are split again; points: at most one per texel
+            most = (vis.resolution.bit_length() + 1 if self.basis in ("wavelet", "quadtree") else
+                    3 * vis.resolution**2 * (1 if vis.hemisphere else 2))
+            if self.basis in ("wavelet", "quadtree", "points") and n > most:
+                what = (f"the {most} levels a cube map of R = {vis.resolution} can be refined to"
+                        if self.basis != "points" else f"the {most} light directions at R = {vis.resolution}")
+                raise InputError(f"--levels {n} is more than {what}", None,
+                                 f"use --levels auto, or at most {most}")
         if not 0 <= self.held_out <= 0.5:
             raise InputError(f"--held-out must be a fraction from 0 to 0.5, got {self.held_out}", None,
                              "use e.g. --held-out 0.1")
@@ -179,6 +189,9 @@ def _load(scene: SceneFiles, cache: SceneCache, opts: SolveOptions, camera, phot
     if saturated.all():
         raise InputError("every used pixel is saturated (clipped)", photo_path,
                          "use a darker exposure or an HDR (EXR) photo")
+    if not np.any(values[~saturated] > 0):
+        raise InputError(f"the photo is black over all {len(values)} used pixels: there is no light to recover",
+                         photo_path, "check the exposure, the lens cap, the mask and that this is the right photo")
     held = holdout_mask(data.samples.pixel, opts.held_out) if opts.held_out > 0 else np.zeros(len(values), bool)
     return Problem(camera, photo_path, photo, data, values, saturated, held, None, None, None)
 
@@ -278,6 +291,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     observability.png, coefficients.h5, relit.exr/png, residual.png, reflectance.json, solve_report.json."""
     from pipelines import images
     from pipelines import light as lt
+    from pipelines import reflectance as rf
     from pipelines import render as rd
     from pipelines.cubemap import cross_image
 
@@ -309,42 +323,49 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             console.say(f"solve: warning: the {sol.basis} light goes negative (min {sol.details['min_radiance']:.4g}, "
                         f"{100 * sol.details['negative_fraction']:.0f} % of the texels): it is kept as solved; "
                         "tools that clip it get a different light (use --sh-nonnegative for a physical one)")
-        out = scene.out
-        outputs = write_light(out, "light", sol.light, cube, unobservable=problem.unobservable)
-        obs_cross, valid = cross_image(problem.observability, cube)
-        obs_img = heat_map(obs_cross, 1.0)
-        obs_img[~valid] = 0.15
-        outputs.append(out / "observability.png")
-        images.write_png(outputs[-1], upscale(obs_img), already_display=True)
-        outputs.append(out / "coefficients.h5")
-        with atomic_output(outputs[-1]) as tmp:
-            lt.write_solution(tmp, sol, cube, problem.unobservable, {"material": str(material.to_json())})
-        relit = rd.render(problem.data, sol.light, material)
-        img = rd.pixels_to_image(relit, problem.data.samples.pixel, camera.height, camera.width)
-        outputs += [out / "relit.exr", out / "relit.png", out / "residual.png"]
-        images.write_exr(outputs[-3], img)
-        images.write_png(outputs[-2], img, exposure)
-        versus = compare_to_photo(relit, photo, problem.data.samples, camera, outputs[-1])
-        reflectance = {"format": "wavelight-reflectance-1", **result.summary(), "scale_ambiguity": SCALE_NOTE}
-        outputs.append(out / "reflectance.json")
-        write_json_atomic(outputs[-1], _jsonable(reflectance))
-        report = {
-            "format": "wavelight-solve-report-1",
-            "scene": str(scene.root), "photo": photo_path.name, "basis": sol.basis,
-            "options": {**asdict(opts), "resolution": vis_opts.resolution, "hemisphere": vis_opts.hemisphere,
-                        "supersample": vis_opts.supersample, "reflectance": asdict(refl)},
-            "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
-            "reflectance": reflectance,
-            "pixels": problem.pixel_counts(),
-            "normal_equations_seconds": problem.ne.seconds,
-            "observability": problem.observability_summary(),
-            "relit": versus,
-            "brightest_direction": _brightest(sol, cube),
-            "solution": sol.summary(),
-            "seconds": time.monotonic() - t0,
-        }
-        outputs.append(out / "solve_report.json")
-        write_json_atomic(outputs[-1], _jsonable(report))
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            out = scene.out
+            outputs = write_light(out, "light", sol.light, cube, unobservable=problem.unobservable)
+            obs_cross, valid = cross_image(problem.observability, cube)
+            obs_img = heat_map(obs_cross, 1.0)
+            obs_img[~valid] = 0.15
+            outputs.append(out / "observability.png")
+            images.write_png(outputs[-1], upscale(obs_img), already_display=True)
+            outputs.append(out / "coefficients.h5")
+            with atomic_output(outputs[-1]) as tmp:
+                lt.write_solution(tmp, sol, cube, problem.unobservable, {"material": str(material.to_json())})
+            relit = rd.render(problem.data, sol.light, material)
+            img = rd.pixels_to_image(relit, problem.data.samples.pixel, camera.height, camera.width)
+            outputs += [out / "relit.exr", out / "relit.png", out / "residual.png"]
+            images.write_exr(outputs[-3], img)
+            images.write_png(outputs[-2], img, exposure)
+            versus = compare_to_photo(relit, photo, problem.data.samples, camera, outputs[-1])
+            warnings = lt.diagnose(problem.ne, sol, cube, versus["relative_rmse_vs_photo"])
+            n_range = rf.SHININESS_RANGE
+            if material.specular and not n_range[0] * 1.001 < material.shininess < n_range[1] * 0.999:
+                warnings.append(f"the shininess n = {material.shininess:g} is at the end of its range {n_range}: "
+                                "the highlight is not resolved (try a larger R, or --reflectance lambert)")
+            reflectance = {"format": "wavelight-reflectance-1", **result.summary(), "scale_ambiguity": SCALE_NOTE}
+            outputs.append(out / "reflectance.json")
+            write_json_atomic(outputs[-1], _jsonable(reflectance))
+            report = {
+                "format": "wavelight-solve-report-1",
+                "scene": str(scene.root), "photo": photo_path.name, "basis": sol.basis,
+                "options": {**asdict(opts), "resolution": vis_opts.resolution, "hemisphere": vis_opts.hemisphere,
+                            "supersample": vis_opts.supersample, "reflectance": asdict(refl)},
+                "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
+                "reflectance": reflectance,
+                "pixels": problem.pixel_counts(),
+                "normal_equations_seconds": problem.ne.seconds,
+                "observability": problem.observability_summary(),
+                "relit": versus,
+                "warnings": warnings,
+                "brightest_direction": _brightest(sol, cube),
+                "solution": sol.summary(),
+                "seconds": time.monotonic() - t0,
+            }
+            outputs.append(out / "solve_report.json")
+            write_json_atomic(outputs[-1], _jsonable(report))
         summary = {"basis": sol.basis, "coefficients": sol.n_coefficients,
                    "relative_rmse_vs_photo": versus["relative_rmse_vs_photo"],
                    "held_out_rmse": sol.held_out_rmse, "unobservable_texels": int(problem.unobservable.sum()),
@@ -357,6 +378,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                        f"{versus['compared_pixels']} pixels{held}; brightest direction theta "
                        f"{b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> {cache.relative(outputs[0])}")
         console.result(f"solve: reflectance {material_text(material)} ({result.decision})")
+        for w in warnings:
+            console.say(f"solve: warning: {w}")
         for p in outputs:
             console.say(f"solve: wrote {cache.relative(p)}")
     return d
@@ -420,13 +443,14 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                              "min_radiance_relative": "lowest texel radiance / highest (negative: not a light)"}}
         outputs = [out / "compare.json", out / "compare.md", out / "compare.png", out / "compare_lights.png",
                    out / "compare_lights.h5"]
-        write_json_atomic(outputs[0], _jsonable(table))
-        text = compare_markdown(table)
-        with atomic_output(outputs[1]) as tmp:
-            tmp.write_text(text)
-        compare_plot(table, outputs[2])
-        compare_lights_figure(lights, problem.data.cube, outputs[3])
-        _write_lights(outputs[4], lights, problem.data.cube)
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            write_json_atomic(outputs[0], _jsonable(table))
+            text = compare_markdown(table)
+            with atomic_output(outputs[1]) as tmp:
+                tmp.write_text(text)
+            compare_plot(table, outputs[2])
+            compare_lights_figure(lights, problem.data.cube, outputs[3])
+            _write_lights(outputs[4], lights, problem.data.cube)
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, {"rows": len(rows)})
         console.result(text.rstrip())
@@ -452,10 +476,8 @@ def compare_markdown(table: dict) -> str:
 
 def _write_lights(path: Path, lights: list, cube) -> None:
     """Each basis' texel light (datasets in the table's row order, named by basis) with the cube map."""
-    import h5py
-
     with atomic_output(path) as tmp:
-        with h5py.File(tmp, "w") as f:
+        with h5_file(tmp) as f:
             f.attrs.update({"format": "wavelight-compare-lights-1", "resolution": cube.resolution,
                             "hemisphere": cube.hemisphere, "units": "linear radiance per texel"})
             for k, (label, texels) in enumerate(lights):

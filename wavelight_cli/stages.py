@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.errors import InputError
+from pipelines.errors import InputError, require_file
 
-from .cache import Decision, SceneCache, atomic_output
+from .cache import Decision, SceneCache, atomic_output, output_set
 from .scenefiles import SceneFiles
 
 VISIBILITY_VERSION = 2
@@ -69,8 +69,7 @@ class VisibilityOptions:
 
 
 def _require(path: Path | None, what: str, fix: str) -> Path:
-    if path is None or not Path(path).is_file():
-        raise InputError("file not found", path, fix)
+    require_file(path, fix)
     return Path(path)
 
 
@@ -215,7 +214,7 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
                      f"{int(img.saturated.sum())} saturated pixels")
     else:
         lines.append("photo: none (needed by solve)")
-    if scene.correspondences.is_file():
+    if scene.correspondences.exists():
         uv, _ = read_correspondences(scene.correspondences)
         lines.append(f"correspondences.csv: {len(uv)} points")
     mesh = load_mesh(scene.mesh)
@@ -229,7 +228,7 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
         if not mask.any():
             raise InputError("mask is empty (no white pixel)", scene.mask, "paint the pixels to use white")
         lines.append(f"mask.png: {int(mask.sum())} pixels")
-    if scene.pose.is_file():
+    if scene.pose.exists():
         read_pose(scene.pose)
         opts.check()
         *_, diag = _load_samples(scene, opts)
@@ -324,19 +323,20 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
         light = cubemap.latlong_to_cube(env, data.cube)
         values = rd.render(data, light, material)
         img = rd.pixels_to_image(values, data.samples.pixel, camera.height, camera.width)
-        outputs = [scene.out / "render.exr", scene.out / "render.png"]
-        images.write_exr(outputs[0], img)
-        images.write_png(outputs[1], img, exposure)
-        outputs += write_light(scene.out, "render_light", light, data.cube)
-        summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
-        residual_path = scene.out / "render_residual.png"
-        if photo is None and residual_path.exists():
-            residual_path.unlink()  # it belonged to a photo that is gone
-        if photo is not None:
-            outputs.append(residual_path)
-            summary.update(compare_to_photo(values, photo, data.samples, camera, residual_path))
-            console.result(f"render: relative RMSE vs {photo_path.name}: "
-                           f"{100 * summary['relative_rmse_vs_photo']:.2f} % over {summary['compared_pixels']} pixels")
+        with output_set():  # the stage's files replace the old ones together, or not at all
+            outputs = [scene.out / "render.exr", scene.out / "render.png"]
+            images.write_exr(outputs[0], img)
+            images.write_png(outputs[1], img, exposure)
+            outputs += write_light(scene.out, "render_light", light, data.cube)
+            summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
+            residual_path = scene.out / "render_residual.png"
+            if photo is None and residual_path.exists():
+                residual_path.unlink()  # it belonged to a photo that is gone
+            if photo is not None:
+                outputs.append(residual_path)
+                summary.update(compare_to_photo(values, photo, data.samples, camera, residual_path))
+                console.result(f"render: relative RMSE vs {photo_path.name}: "
+                               f"{100 * summary['relative_rmse_vs_photo']:.2f} % over {summary['compared_pixels']} pixels")
         seconds = time.monotonic() - t0
         cache.record(d, outputs, seconds, summary)
         for p in outputs:
