@@ -4,7 +4,8 @@
 the TRUE material at one R, from an empty cache. For each level and basis: coefficients, solve time
 (after the normal equations), fit and held-out error (from the stages' JSON), and the light error
 against the true light (relative RMSE of the irradiance over upward normals, as in
-bench_mitsuba.py). Prints one JSON line. Usage:
+bench_mitsuba.py), and the relighting error of two probe spheres seen from the scene's camera
+(`probe_error`). Prints one JSON line. Usage:
     python benchmarks/bench_bases.py SCENE_DIR WORK_DIR [--resolution 32]
 """
 
@@ -27,6 +28,52 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_mitsuba import irradiance, irradiance_normals, light_error  # noqa: E402
 from pipelines import cubemap, haar, images  # noqa: E402
 from pipelines import light as lt  # noqa: E402
+from pipelines.render import Material, transport  # noqa: E402
+from pipelines.scene import read_pose  # noqa: E402
+
+# Two probe spheres: a matte one (what a diffuse object inserted into the photo would show) and a
+# glossy one (what a specular object would reflect: the light's sharper detail).
+PROBES = {"diffuse": Material(kd=(0.8, 0.8, 0.8)),
+          "glossy": Material(kd=(0.2, 0.2, 0.2), ks=(0.8, 0.8, 0.8), shininess=100.0, model="blinn-phong")}
+PROBE_PIXELS = 48  # the probe's image is PROBE_PIXELS across
+
+
+def probe_geometry(view: np.ndarray, pixels: int = PROBE_PIXELS) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of a unit sphere seen orthographically from unit direction `view` (toward the
+    camera), one per pixel of its disc, and the view direction repeated: (P, 3) each."""
+    up = np.array([0.0, 0.0, 1.0]) if abs(view[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    right = np.cross(up, view)
+    right /= np.linalg.norm(right)
+    up = np.cross(view, right)
+    u = (np.arange(pixels) + 0.5) / pixels * 2 - 1
+    x, y = np.meshgrid(u, -u)
+    inside = x**2 + y**2 < 1
+    z = np.sqrt(1 - x[inside] ** 2 - y[inside] ** 2)
+    normals = x[inside, None] * right + y[inside, None] * up + z[:, None] * view
+    return normals, np.broadcast_to(view, normals.shape).copy()
+
+
+def probe_image(texels: np.ndarray, cube: cubemap.CubeMap, normals: np.ndarray, views: np.ndarray,
+                material: Material) -> np.ndarray:
+    """The probe's radiance (P, 3) under a hemisphere light: the same transport as every solver,
+    with nothing in the way (a sphere does not shadow itself; the ground hides the lower half)."""
+    V = np.ones((len(normals), cube.n_texels), np.float32)
+    D, S = transport(V, normals, views, cube, material)
+    L = np.asarray(texels, np.float64).reshape(cube.n_texels, -1)
+    out = (D.astype(np.float64) @ L) * np.asarray(material.kd)
+    if S is not None:
+        out += (S.astype(np.float64) @ L) * np.asarray(material.ks)
+    return out
+
+
+def probe_error(texels: np.ndarray, cube: cubemap.CubeMap, truth: dict, geometry) -> dict:
+    """Relative RMSE of each probe relit by `texels` against the same probe under the true light."""
+    out = {}
+    for name, material in PROBES.items():
+        img = probe_image(texels, cube, *geometry, material)
+        ref = truth[name]
+        out[name] = float(np.sqrt(np.mean((img - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
+    return out
 
 
 def latlong(texels, cube, height=128):
@@ -57,6 +104,13 @@ def main():
     normals = irradiance_normals()
     truth_E = irradiance(images.read_latlong(args.scene / "truth" / "env_latlong.exr"), normals)
     R = str(args.resolution)
+    # the true light, on a finer hemisphere cube than the solves' (its sun stays sharp)
+    pose = read_pose(args.scene / "pose.json")
+    view = pose.camera_centre  # the probe at the world origin, seen from the photo's camera
+    geometry = probe_geometry(view / np.linalg.norm(view))
+    fine = cubemap.CubeMap(max(64, 2 * args.resolution))
+    truth_texels = cubemap.latlong_to_cube(images.read_latlong(args.scene / "truth" / "env_latlong.exr"), fine)
+    truth_probes = {name: probe_image(truth_texels, fine, *geometry, m) for name, m in PROBES.items()}
     solve_seconds = timed(exe, scene, "solve", R, material)
     report = json.loads((scene / "out" / "solve_report.json").read_text())
     levels = []
@@ -67,7 +121,8 @@ def main():
             texels = haar.synthesise(g["coefficients"][:], lt.read_tree(g["tree"]))
             levels.append({"level": lv["level"], "coefficients": lv["coefficients"], "seconds": lv["seconds"],
                            "fit_rmse": lv["fit_rmse"], "held_out_rmse": lv["held_out_rmse"],
-                           "light_err": light_error(latlong(texels, cube), truth_E, normals)})
+                           "light_err": light_error(latlong(texels, cube), truth_E, normals),
+                           "probe_err": probe_error(texels, cube, truth_probes, geometry)})
     compare_seconds = timed(exe, scene, "compare", R, material)
     table = json.loads((scene / "out" / "compare.json").read_text())
     bases = []
@@ -77,7 +132,8 @@ def main():
             texels = np.clip(f[name][:].astype(np.float64), 0, None)  # what a renderer would use
             bases.append({**{k: row[k] for k in ("basis", "coefficients", "seconds", "fit_rmse", "held_out_rmse",
                                                  "min_radiance_relative")},
-                          "light_err": light_error(latlong(texels, cube), truth_E, normals)})
+                          "light_err": light_error(latlong(texels, cube), truth_E, normals),
+                          "probe_err": probe_error(texels, cube, truth_probes, geometry)})
     print(json.dumps({"scene": args.scene.name, "resolution": args.resolution, "solve_stage_seconds": solve_seconds,
                       "normal_equations_seconds": report["normal_equations_seconds"],
                       "compare_stage_seconds": compare_seconds, "levels": levels, "bases": bases,
