@@ -9,9 +9,12 @@ from __future__ import annotations
 import hashlib
 import re
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -197,3 +200,19 @@ def check_bad_input(source: Path, tmp_path: Path, mutate, args, culprit: str) ->
     line = assert_one_error_line(invoke(scene, *argv), culprit, quiet=False)
     assert snapshot(scene) == before, f"a failed run changed the cache or the results: {line}"
     return line
+
+
+def kill_when(proc: subprocess.Popen, ready, timeout: float, poll: float = 0.01) -> None:
+    """SIGKILL `proc` as soon as `ready()` is true (checked every `poll` s, up to `timeout` s) unless
+    it has ended by then; the process is always reaped."""
+    try:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and proc.poll() is None and not ready():
+            time.sleep(poll)
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

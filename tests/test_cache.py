@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import signal
 import subprocess
-import time
 
 import pytest
 
@@ -19,6 +17,7 @@ from cli_helpers import (
     decision_line,
     h5_arrays,
     invoke,
+    kill_when,
     manifest,
     ok,
     render_args,
@@ -285,21 +284,9 @@ def test_killed_visibility_run_resumes_to_identical_bits(tmp_path):
     with open(tmp_path / "ref.err", "w") as ref_err, open(tmp_path / "killed.err", "w") as kill_err:
         ref = subprocess.Popen([exe, "-s", str(reference), *KILL_ARGS], stdout=subprocess.DEVNULL, stderr=ref_err)
         proc = subprocess.Popen([exe, "-s", str(killed), *KILL_ARGS], stdout=subprocess.DEVNULL, stderr=kill_err)
-        try:
-            deadline = time.monotonic() + 240
-            chunks = []
-            while time.monotonic() < deadline:
-                chunks = list(killed.glob(".wavelight/partial/visibility-*/chunk_*.npy"))
-                if len(chunks) >= 2 or proc.poll() is not None:
-                    break
-                time.sleep(0.01)
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+        kill_when(proc, lambda: len(list(killed.glob(".wavelight/partial/visibility-*/chunk_*.npy"))) >= 2,
+                  timeout=240)
+    chunks = list(killed.glob(".wavelight/partial/visibility-*/chunk_*.npy"))
     log = (tmp_path / "killed.err").read_text()
     assert len(chunks) >= 2, f"no chunks appeared before the deadline:\n{log}"
     assert proc.returncode == -signal.SIGKILL, f"the run ended before it could be interrupted:\n{log}"

@@ -11,13 +11,12 @@ import json
 import os
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
 from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke,
-                         manifest, ok, run_proc, snapshot, wavelight_exe)
+                         kill_when, manifest, ok, run_proc, snapshot, wavelight_exe)
 from pipelines import images
 from pipelines.fileio import atomic_output, is_temporary, output_set
 
@@ -137,21 +136,13 @@ def test_killed_solve_reruns_to_identical_results(tmp_path, moment):
     log = tmp_path / "killed.err"
     with open(log, "w") as err:
         proc = subprocess.Popen([wavelight_exe(), "-s", str(killed), *SOLVE], stdout=subprocess.DEVNULL, stderr=err)
-        try:
-            deadline = time.monotonic() + 120
-            while time.monotonic() < deadline and proc.poll() is None:
-                if moment == "writing" and any(is_temporary(p.name) for p in (killed / "out").glob(".*")):
-                    break
-                if moment == "computing" and "normal equations in" in log.read_text():
-                    break
-                time.sleep(0.001)
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+        if moment == "writing":
+            def ready():
+                return any(is_temporary(p.name) for p in (killed / "out").glob(".*"))
+        else:
+            def ready():
+                return "normal equations in" in log.read_text()
+        kill_when(proc, ready, timeout=120, poll=0.001)
     assert proc.returncode == -signal.SIGKILL, f"the solve ended before it could be killed:\n{log.read_text()}"
     assert "solve" not in manifest(killed)["stages"]
     # nothing under a final name: outputs replace their old versions together, at the end
