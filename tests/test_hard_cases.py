@@ -242,3 +242,51 @@ def test_sixteen_bit_png_photo(lambert_solved, tmp_path):
     a, _ = solved_light(scene)
     b, _ = solved_light(lambert_solved)
     np.testing.assert_allclose(a / scale, b, rtol=0.02, atol=0.01 * b.max())
+
+
+def test_every_texel_unobservable_but_three():
+    """Pixels that see only 3 of the 192 light directions (every other column of the transport is
+    zero): every basis solves, puts no light where nothing is seen (SH cannot: it is smooth, and
+    says so by its negative lobes), and the diagnosis says only 3 of 9 low-frequency components
+    are determined."""
+    rng = np.random.default_rng(13)
+    cube = cubemap.CubeMap(8)
+    n = cube.n_texels
+    seen = np.array([5, 77, 150])
+    T = np.zeros((500, n))
+    T[:, seen] = np.abs(rng.normal(size=(500, 3)))
+    b = T @ np.full((n, 3), 2.0) + 0.01 * rng.normal(size=(500, 3))
+    fit, held = slice(0, 450), slice(450, 500)
+
+    def part(rows):
+        return SystemPart(T[rows].T @ T[rows], T[rows].T @ b[rows], np.sum(b[rows] ** 2, axis=0), len(b[rows]))
+
+    ne = NormalEquations(part(fit), part(held), 0.0)
+    for basis in ("wavelet", "quadtree", "discrete", "points", "sh"):
+        sol = lt.solve(ne, cube, basis)
+        assert np.all(np.isfinite(sol.light)), basis
+        if basis != "sh":
+            assert sol.light.min() >= 0, basis
+            unseen = np.setdiff1d(np.arange(n), seen)
+            assert np.all(sol.light[unseen] == 0), basis
+            assert sol.fit_rmse < 0.02, (basis, sol.fit_rmse)
+    notes = lt.diagnose(ne, lt.solve(ne, cube, "discrete"), cube, relit_error=0.01)
+    assert any("determine only 3 of the 9" in w for w in notes), notes
+
+
+def test_convex_object_without_shadows_sees_only_a_blurred_light(tmp_path):
+    """A lone sphere (no ground, nothing casts a shadow): all 9 low-frequency components are
+    determined, but ~99 % of what its pixels see lies in them (a clamped cosine); the solve says
+    so. The sample (Spot casting shadows on its ground) stays below the threshold (test above)."""
+    from pipelines.insert import sphere
+
+    scene = copy_sample(tmp_path / "sphere")
+    m = sphere(0.5, 4)
+    v = m.vertices + np.array([0.0, 0.0, 0.5])
+    lines = [f"v {a:.7f} {b:.7f} {c:.7f}" for a, b, c in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
+    (scene / "mesh.obj").write_text("\n".join(lines) + "\n")
+    rendered_photo(scene, scene / "truth" / "env_latlong.exr", {"model": "lambert", "kd": [0.8, 0.8, 0.8]})
+    ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
+    warnings = report(scene)["warnings"]
+    assert any("lowest-frequency components (few cast shadows)" in w for w in warnings), warnings
+    assert not any("determine only" in w for w in warnings), warnings
