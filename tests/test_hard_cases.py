@@ -290,3 +290,6 @@ def test_convex_object_without_shadows_sees_only_a_blurred_light(tmp_path):
     warnings = report(scene)["warnings"]
     assert any("lowest-frequency components (few cast shadows)" in w for w in warnings), warnings
     assert not any("determine only" in w for w in warnings), warnings
+    ok(invoke(scene, "report"))
+    text = (scene / "out" / "report.md").read_text()
+    assert "What the photo cannot tell" in text and warnings[0] in text

@@ -220,6 +220,8 @@ def report_stage(scene: SceneFiles, console: Console) -> Path:
               f"{solve.get('observability', {}).get('texels')} |",
               f"| time | normal equations {solve.get('normal_equations_seconds', 0):.1f} s, light "
               f"{sol.get('seconds', 0):.2f} s, whole solve {solve.get('seconds', 0):.1f} s |", ""]
+    if solve.get("warnings"):
+        lines += ["**What the photo cannot tell:**", ""] + [f"- {w}" for w in solve["warnings"]] + [""]
     lines += ["## Refinement, level by level", ""]
     if "levels" in figures:
         lines += [f"![levels]({figures['levels']})", "",
