@@ -468,14 +468,22 @@ def _sh_nonnegative(G: np.ndarray, h: np.ndarray, Y: np.ndarray, start: np.ndarr
     low = float((Y @ c0).min(initial=0.0))
     if low < 0:  # shift the DC term until the start is feasible
         c0[0] -= low / Y[0, 0] * 1.0001
-    res = optimize.minimize(lambda c: 0.5 * c @ G @ c - h @ c, c0, jac=lambda c: G @ c - h, method="SLSQP",
+    # SLSQP's ftol is absolute: scale the objective to O(1) (it scales with the photo's brightness^2)
+    scale = max(abs(float(h @ start)), float(np.abs(h).max(initial=0.0)) * 1e-12, 1e-300)
+    Gs, hs = G / scale, h / scale
+    res = optimize.minimize(lambda c: 0.5 * c @ Gs @ c - hs @ c, c0, jac=lambda c: Gs @ c - hs, method="SLSQP",
                             constraints=[{"type": "ineq", "fun": lambda c: Y @ c, "jac": lambda c: Y}],
-                            options={"maxiter": 500, "ftol": 1e-15})
-    c = res.x
-    low = float((Y @ c).min(initial=0.0))
-    if low < 0:  # clean up the constraint tolerance
-        c[0] -= low / Y[0, 0]
-    return c
+                            options={"maxiter": 500, "ftol": 1e-12})
+    dc = np.zeros_like(c0)  # the best constant light (feasible, so never beaten by a worse answer)
+    dc[0] = max(float(h[0]) / float(G[0, 0]), 0.0) if G[0, 0] > 0 else 0.0
+    candidates = [c0, dc, np.zeros_like(c0)]  # all feasible: the shifted start, a constant, no light
+    if res.success:  # (SLSQP can fail, e.g. "inequality constraints incompatible", with a wild point)
+        c = res.x.copy()
+        low = float((Y @ c).min(initial=0.0))
+        if low < 0:  # clean up the constraint tolerance
+            c[0] -= low / Y[0, 0]
+        candidates.insert(0, c)
+    return min(candidates, key=lambda c: 0.5 * c @ Gs @ c - hs @ c)
 
 
 # -- points ------------------------------------------------------------------------------------

@@ -145,7 +145,7 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
     x = np.zeros(n)
     hscale = max(float(np.abs(h[live]).max(initial=0.0)), 1e-300)
     if not live.any() or hscale <= 1e-300:
-        return NNLSResult(x, 0.0, 0, n - int((~live).sum()), int((~live).sum()), 0.0, float("nan"), 0,
+        return NNLSResult(x, 0.0, 0, n, int((~live).sum()), 0.0, float("nan"), 0,
                           time.perf_counter() - t0, objective=0.0)
     idx = np.flatnonzero(live)
     Gl = G if len(idx) == n else G[np.ix_(idx, idx)]  # no copy of a large G when every column is live
@@ -230,6 +230,9 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
         if trace is not None:
             trace(iterations, len(F), int(violators.sum()), objective)
         if not violators.any():
+            # ended with variables that want in but were called dependent on the free set (a nearly
+            # singular block): not an optimum, so projected gradient finishes from here
+            fallback = bool((~free & stuck & (y < -tol)).any())
             break
         if iterations >= budget:
             fallback = True

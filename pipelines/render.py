@@ -54,25 +54,28 @@ class Material:
     def from_json(cls, data: dict) -> "Material":
         """Accepts our own reflectance.json and the scenes' truth/material.json
         ({"type": "diffuse"|"blinnphong", "kd": .., "ks": .., "n": ..})."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a material must be a JSON object, got {type(data).__name__}")
         kind = str(data.get("model", data.get("type", "lambert"))).lower()
         model = {"diffuse": "lambert", "lambertian": "lambert", "blinnphong": "blinn-phong",
                  "blinn_phong": "blinn-phong"}.get(kind, kind)
-
-        if not isinstance(data, dict):
-            raise ValueError(f"a material must be a JSON object, got {type(data).__name__}")
 
         def rgb(name, default):
             v = data.get(name)
             v = default if v is None else v
             try:
                 return tuple(float(x) for x in (np.broadcast_to(np.asarray(v, float), (3,))))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{name} must be a number or 3 numbers, got {v!r}") from None
 
         n = data.get("n", data.get("shininess", 1.0))
         if isinstance(n, bool) or not isinstance(n, (int, float)):
             raise ValueError(f"n (shininess) must be a number, got {n!r}")
-        return cls(kd=rgb("kd", 1.0), ks=rgb("ks", 0.0), shininess=float(n), model=model)
+        try:
+            n = float(n)
+        except OverflowError:
+            raise ValueError("n (shininess) must be a finite number, got a huge integer") from None
+        return cls(kd=rgb("kd", 1.0), ks=rgb("ks", 0.0), shininess=n, model=model)
 
     def to_json(self) -> dict:
         return {"model": self.model, "kd": list(self.kd), "ks": list(self.ks), "n": self.shininess,

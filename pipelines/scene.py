@@ -101,10 +101,16 @@ def _number(data: dict, key: str, path: Path, positive: bool = False) -> float:
     value = data[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"field '{key}' must be a number, got {value!r}", path, "fix the value")
-    if not math.isfinite(value) or (positive and value <= 0):
+    try:
+        number = float(value)  # a JSON integer beyond float64 overflows
+    except OverflowError:
+        number = math.inf
+    if not math.isfinite(number) or (positive and number <= 0):
         need = "a positive finite number" if positive else "finite"
-        raise InputError(f"field '{key}' must be {need}, got {value!r}", path, "fix the value")
-    return float(value)
+        shown = (value if math.isfinite(number) or not isinstance(value, int)
+                 else f"an integer of {len(str(value))} digits")
+        raise InputError(f"field '{key}' must be {need}, got {shown!r}", path, "fix the value")
+    return number
 
 
 def _array(data: dict, key: str, shape: tuple[int, ...], path: Path) -> np.ndarray:
@@ -112,7 +118,7 @@ def _array(data: dict, key: str, shape: tuple[int, ...], path: Path) -> np.ndarr
         raise InputError(f"missing field '{key}'", path, "see README for the file format")
     try:
         arr = np.asarray(data[key], dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"field '{key}' must be numbers of shape {shape}", path, "fix the value") from None
     if arr.shape != shape:
         raise InputError(f"field '{key}' has shape {arr.shape}, expected {shape}", path, "fix the value")
@@ -162,8 +168,9 @@ def read_correspondences(path: str | Path, min_points: int = 4) -> tuple[np.ndar
     require_file(path, "create correspondences.csv with header u,v,x,y,z")
     try:
         rows = list(csv.reader(path.read_text().splitlines()))
-    except UnicodeDecodeError:
-        raise InputError("not a text CSV file", path, "save it as plain CSV with header u,v,x,y,z") from None
+    except (UnicodeDecodeError, csv.Error) as exc:  # csv.Error: e.g. an unclosed quote swallowing the file
+        what = "not a text CSV file" if isinstance(exc, UnicodeDecodeError) else f"not valid CSV ({exc})"
+        raise InputError(what, path, "save it as plain CSV with header u,v,x,y,z") from None
     except OSError as exc:
         raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
     rows = [r for r in rows if r and any(c.strip() for c in r)]
@@ -230,6 +237,9 @@ def load_mesh(path: str | Path) -> Mesh:
     faces = np.concatenate([np.asarray(m.faces, dtype=np.int64) + o for m, o in zip(parts, offsets)])
     if not np.all(np.isfinite(vertices)):
         raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
+                         f" of {len(vertices)}", path, "repair or re-export the mesh")
     normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
     notes = []
     if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
@@ -254,6 +264,13 @@ def load_mesh(path: str | Path) -> Mesh:
     faces = faces[~drop]
     bad_n = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
     if bad_n.any():
-        normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
+        normals = np.array(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
+        flat = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
+        if flat.any():  # faces around the vertex cancel (a sheet folded onto itself): take one face's normal
+            v = vertices[faces]
+            fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+            first = np.full(len(vertices), -1)
+            first[faces[::-1].ravel()] = np.repeat(np.arange(len(faces))[::-1], 3)
+            normals[flat] = np.where(first[flat, None] >= 0, fn[first[flat]], [0.0, 0.0, 1.0])
     normals = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
     return Mesh(vertices, faces, normals, tuple(notes))

@@ -84,6 +84,16 @@ def _param_for_key(cmd: click.Command, key: str) -> click.Parameter | None:
     return None
 
 
+def _name(text: str) -> str:
+    """A TOML section or key as the error line shows it (quoted names may hold line breaks)."""
+    return text if text.replace("-", "").replace("_", "").isalnum() else repr(text)
+
+
+def _value(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
     path = scene_dir / "scene.toml"
     if not path.exists():
@@ -101,7 +111,7 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
                     if name == section or (section == VIS_SECTION and getattr(cmd, "uses_visibility", False))]
         if not commands or not isinstance(values, dict):
             known = sorted(set(group.commands) | {VIS_SECTION})
-            raise InputError(f"unknown section [{section}]", path, f"use one of: {', '.join(known)}")
+            raise InputError(f"unknown section [{_name(section)}]", path, f"use one of: {', '.join(known)}")
         for key, value in values.items():
             for name in commands:
                 cmd = group.commands[name]
@@ -109,16 +119,22 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
                 if param is None:
                     if name == section:
                         options = sorted(_key_names(p)[0] for p in cmd.params if isinstance(p, click.Option))
-                        raise InputError(f"unknown key '{key}' in [{section}]", path,
+                        raise InputError(f"unknown key {key!r} in [{_name(section)}]", path,
                                          f"valid keys: {', '.join(options)}")
                     continue
+                if isinstance(param.type, click.Path) and isinstance(value, str) and value \
+                        and not Path(value).is_absolute():
+                    value = str(scene_dir / value)  # relative to the scene folder, not the working directory
                 try:
                     with click.Context(cmd) as sub:
                         param.type_cast_value(sub, value)
-                except click.BadParameter as exc:
-                    raise InputError(f"[{section}] {key} = {value!r}: {exc.message}", path, "fix the value") from None
-                if isinstance(param.type, click.Path) and isinstance(value, str) and not Path(value).is_absolute():
-                    value = str(scene_dir / value)  # relative to the scene folder, not the working directory
+                    if isinstance(param.type, click.Path) and value == "":
+                        raise click.BadParameter("an empty path")
+                except (click.BadParameter, TypeError, ValueError, AttributeError) as exc:
+                    # click's types raise plain errors for a TOML value of the wrong kind (an array for a number)
+                    why = exc.message if isinstance(exc, click.BadParameter) else f"not a valid {param.type.name}"
+                    raise InputError(f"[{_name(section)}] {_name(key)} = {_value(value)}: {why}", path,
+                                     "fix the value") from None
                 default_map.setdefault(name, {})[param.name] = value
     return default_map
 
