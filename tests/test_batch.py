@@ -132,7 +132,10 @@ def test_batch_resumes_after_interrupt(tmp_path, solved_batch):
     """Ctrl-C (SIGINT to make's process group) mid-visibility, then the same command again."""
     scene = copy_sample(tmp_path / "scene")
     batch = tmp_path / "batch"
-    proc = make_batch([scene], batch, start_new_session=True)
+    # Ctrl-C must reach make and wavelight even when this test runs in the background (a
+    # non-interactive shell starts background jobs with SIGINT ignored, and children inherit that)
+    proc = make_batch([scene], batch, start_new_session=True,
+                      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         logs = []
