@@ -26,10 +26,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_mitsuba import irradiance, irradiance_normals, light_error  # noqa: E402
-from pipelines import cubemap, haar, images  # noqa: E402
-from pipelines import light as lt  # noqa: E402
-from pipelines.render import Material, transport  # noqa: E402
-from pipelines.scene import read_pose  # noqa: E402
+from pipelines.light import cubemap
+from pipelines.light import haar
+from pipelines.io import images  # noqa: E402
+from pipelines.io import light_file as lt  # noqa: E402
+from pipelines.model.materials import Material
+from pipelines.model.render import transport  # noqa: E402
+from pipelines.io.scene_files import read_pose  # noqa: E402
 
 # Two probe spheres: a matte one (what a diffuse object inserted into the photo would show) and a
 # glossy one (what a specular object would reflect: the light's sharper detail).

@@ -35,8 +35,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipelines import cubemap, exports, images  # noqa: E402
-from pipelines.scene import load_mesh, read_camera, read_pose  # noqa: E402
+from pipelines.light import cubemap
+from pipelines.io import exports
+from pipelines.io import images  # noqa: E402
+from pipelines.io.scene_files import load_mesh, read_camera, read_pose  # noqa: E402
 
 ENV_H = 32  # the peer's map: 64 x 32
 

@@ -25,10 +25,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_solve import load  # noqa: E402
 
-from pipelines import light as lt  # noqa: E402
-from pipelines import reflectance as rf  # noqa: E402
-from pipelines.normal_equations import build_normal_equations, holdout_mask  # noqa: E402
-from pipelines.render import Material  # noqa: E402
+from pipelines.light import bases as lt  # noqa: E402
+from pipelines.model import reflectance as rf  # noqa: E402
+from pipelines.light.system import build_normal_equations, holdout_mask  # noqa: E402
+from pipelines.model.materials import Material  # noqa: E402
 
 START = Material(kd=(1.0, 1.0, 1.0), ks=(0.25, 0.25, 0.25), shininess=20.0, model="blinn-phong")  # CLI default
 

@@ -34,14 +34,15 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_visibility import scaled_camera  # noqa: E402
-from pipelines import camera as cam  # noqa: E402
-from pipelines import images, raycast  # noqa: E402
-from pipelines import light as lt  # noqa: E402
-from pipelines import visibility as vis  # noqa: E402
-from pipelines.cubemap import CubeMap  # noqa: E402
-from pipelines.normal_equations import build_normal_equations, holdout_mask  # noqa: E402
-from pipelines.render import Material  # noqa: E402
-from pipelines.scene import find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
+from pipelines.geometry import camera as cam  # noqa: E402
+from pipelines.io import images
+from pipelines.geometry import raycast  # noqa: E402
+from pipelines.light import bases as lt  # noqa: E402
+from pipelines.geometry import visibility as vis  # noqa: E402
+from pipelines.light.cubemap import CubeMap  # noqa: E402
+from pipelines.light.system import build_normal_equations, holdout_mask  # noqa: E402
+from pipelines.model.materials import Material  # noqa: E402
+from pipelines.io.scene_files import find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
 
 
 def _rss_mb() -> float:

@@ -25,14 +25,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipelines import camera as cam  # noqa: E402
-from pipelines import images, raycast  # noqa: E402
-from pipelines import light as lt  # noqa: E402
-from pipelines import visibility as vis  # noqa: E402
-from pipelines.cubemap import CubeMap  # noqa: E402
-from pipelines.normal_equations import build_normal_equations, holdout_mask  # noqa: E402
-from pipelines.render import Material, transport  # noqa: E402
-from pipelines.scene import find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
+from pipelines.geometry import camera as cam  # noqa: E402
+from pipelines.io import images
+from pipelines.geometry import raycast  # noqa: E402
+from pipelines.light import bases as lt  # noqa: E402
+from pipelines.geometry import visibility as vis  # noqa: E402
+from pipelines.light.cubemap import CubeMap  # noqa: E402
+from pipelines.light.system import build_normal_equations, holdout_mask  # noqa: E402
+from pipelines.model.materials import Material
+from pipelines.model.render import transport  # noqa: E402
+from pipelines.io.scene_files import find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
 
 RUNS = [("wavelet", {}), ("quadtree", {}), ("discrete", {}), ("sh", {}), ("sh", {"sh_nonnegative": True}),
         ("points", {})]
@@ -74,7 +76,7 @@ def bases(scene: Path, R: int) -> dict:
 def nnls(scene: Path, R: int, repeats: int, step: int) -> dict:
     from scipy.optimize import nnls as scipy_nnls
 
-    from pipelines.nnls import nnls_gram
+    from pipelines.light.nnls import nnls_gram
 
     camera, data, values = load(scene, R, step)
     V = data.dense()

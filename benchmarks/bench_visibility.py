@@ -28,10 +28,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipelines import camera as cam  # noqa: E402
-from pipelines import raycast, visibility  # noqa: E402
-from pipelines.cubemap import CubeMap  # noqa: E402
-from pipelines.scene import Camera, find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
+from pipelines.geometry import camera as cam  # noqa: E402
+from pipelines.geometry import raycast
+from pipelines.geometry import visibility  # noqa: E402
+from pipelines.light.cubemap import CubeMap  # noqa: E402
+from pipelines.geometry.camera import Camera
+from pipelines.io.scene_files import find_mesh, load_mesh, read_camera, read_pose  # noqa: E402
 
 CHUNK = 1024
 

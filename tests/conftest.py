@@ -64,7 +64,7 @@ class ForwardRender:
 
     def render(self, material) -> np.ndarray:
         """(p, 3) radiance of the same pixels and light with another material."""
-        from pipelines import render
+        from pipelines.model import render
 
         return render.render(self.visibility, self.light, material)
 
@@ -83,9 +83,11 @@ def object_face_count(scene_dir: Path) -> int:
 
 
 def _load_scene(name: str) -> MitsubaScene:
-    from pipelines import camera as cam
-    from pipelines import images, raycast, render
-    from pipelines import scene as sc
+    from pipelines.geometry import camera as cam
+    from pipelines.io import images
+    from pipelines.geometry import raycast
+    from pipelines.model import materials
+    from pipelines.io import scene_files as sc
 
     path = SCENES_DIR / name
     camera = sc.read_camera(path / "camera.json")
@@ -97,7 +99,7 @@ def _load_scene(name: str) -> MitsubaScene:
     rows, cols = samples.pixel[:, 0], samples.pixel[:, 1]
     reference = images.read_image(path / "truth" / "image_clean.exr").pixels[rows, cols].astype(np.float64)
     on_object = samples.face < object_face_count(path)
-    material = render.Material.from_json(json.loads((path / "truth" / "material.json").read_text()))
+    material = materials.Material.from_json(json.loads((path / "truth" / "material.json").read_text()))
     return MitsubaScene(name, path, camera, pose, mesh, backend, samples, diagnostics,
                         images.read_latlong(path / "truth" / "env_latlong.exr"), material, reference, on_object)
 
@@ -124,8 +126,9 @@ def mitsuba_scene():
 @pytest.fixture(scope="session")
 def forward_render(mitsuba_scene):
     """`forward_render(name, resolution, step=1) -> ForwardRender`, computed once per session."""
-    from pipelines import cubemap, render
-    from pipelines import visibility as vis
+    from pipelines.light import cubemap
+    from pipelines.model import render
+    from pipelines.geometry import visibility as vis
 
     cache: dict[tuple[str, int, int], ForwardRender] = {}
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import assert_one_error_line, copy_sample, decision_line, invoke, ok, snapshot
-from pipelines import registration as reg
+from pipelines.geometry import registration as reg
 
 DATA = Path(__file__).parent / "data" / "calibration"
 SPOT_CAL = ["calibrate", "--pattern", "acircles", "--pattern-size", "4x11", "--spacing", "10mm"]
@@ -255,7 +255,7 @@ def test_charuco_through_the_cli(tmp_path):
     """10 rendered ChArUco photos and one photo without the board: 10 used, the blank one listed
     with its reason; intrinsics within 0.5 % (with --fix-k3: ten partial views do not determine k3,
     and with it free cx drifts ~1 %, which the warnings say)."""
-    from pipelines import calibration as cal
+    from pipelines.geometry import calibration as cal
     from test_calibration import CH_K, _charuco_photos
 
     scene = tmp_path / "charuco"

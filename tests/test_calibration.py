@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines import calibration as cal
+from pipelines.geometry import calibration as cal
 
 DATA = Path(__file__).parent / "data" / "calibration"
 

@@ -92,7 +92,7 @@ def _truncate_half(name):
 
 def _exr(name, shape, nan=False):
     def mutate(scene):
-        from pipelines.images import write_exr
+        from pipelines.io.images import write_exr
 
         img = np.full(shape, 0.5, dtype=np.float32)
         if nan:
@@ -103,7 +103,7 @@ def _exr(name, shape, nan=False):
 
 def _png(name, shape, value):
     def mutate(scene):
-        from pipelines.images import write_png
+        from pipelines.io.images import write_png
 
         write_png(scene / name, np.full(shape, float(value)), already_display=True)
     return mutate

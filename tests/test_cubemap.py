@@ -3,19 +3,7 @@
 import numpy as np
 import pytest
 
-from pipelines.cubemap import (
-    CROSS_BLOCKS,
-    FACE_NAMES,
-    CubeMap,
-    cross_image,
-    cube_to_latlong,
-    direction_to_spherical,
-    face_rectangle_solid_angle,
-    latlong_directions,
-    latlong_solid_angles,
-    latlong_to_cube,
-    spherical_to_direction,
-)
+from pipelines.light.cubemap import CROSS_BLOCKS, FACE_NAMES, CubeMap, cross_image, cube_to_latlong, direction_to_spherical, face_rectangle_solid_angle, latlong_directions, latlong_solid_angles, latlong_to_cube, spherical_to_direction
 
 RESOLUTIONS = [2, 4, 8, 16, 32, 64, 128]
 MODES = [pytest.param(True, id="hemisphere"), pytest.param(False, id="sphere")]

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from cli_helpers import check_bad_input, invoke, ok
-from pipelines import cubemap, exports as ex, images
+from pipelines.light import cubemap
+from pipelines.io import exports as ex
+from pipelines.io import images
 
 
 def _light(H=64, seed=0, hemisphere=True):
@@ -120,7 +122,7 @@ def test_export_command_writes_every_format_and_they_read_back(solved, tmp_path)
     scene = shutil.copytree(solved, tmp_path / "s")
     ok(invoke(scene, "export"))
     out = scene / "out" / "export"
-    from pipelines import light as lt
+    from pipelines.io import light_file as lt
 
     tex, cube, _ = lt.read_solution_light(scene / "out" / "coefficients.h5")
     faces = {f: images.read_image(out / "opengl" / f"{f}.exr").pixels for f in ex.GL_FACES}

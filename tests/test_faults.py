@@ -17,8 +17,8 @@ import pytest
 
 from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke,
                          kill_when, manifest, ok, run_proc, snapshot, wavelight_exe)
-from pipelines import images
-from pipelines.fileio import atomic_output, is_temporary, output_set
+from pipelines.io import images
+from pipelines.io.files import atomic_output, is_temporary, output_set
 
 SOLVE = ["solve", "--resolution", RES, "--reflectance", "lambert"]
 

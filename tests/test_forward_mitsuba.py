@@ -61,7 +61,7 @@ def test_blinn_phong_matches_mitsuba(forward_render):
     Blinn-Phong plugin (truth/material.json). Today a = 0.996, b = 0.969 at R = 32 (b -> 0.995
     with the exact sun directions); a wrong lobe or normalisation moves b by tens of percent.
     """
-    from pipelines import render
+    from pipelines.model import materials as render
 
     result = forward_render("teapot_sun_phong", 32)
     material = result.scene.material

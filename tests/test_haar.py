@@ -4,18 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from pipelines.haar import (
-    HaarTree,
-    analyse,
-    basis_matrix,
-    coefficients_to_leaf_values,
-    leaf_matrix,
-    leaf_values_to_coefficients,
-    prune,
-    subdivide,
-    synthesise,
-    tree_depth_image,
-)
+from pipelines.light.haar import HaarTree, analyse, basis_matrix, coefficients_to_leaf_values, leaf_matrix, leaf_values_to_coefficients, prune, subdivide, synthesise, tree_depth_image
 
 HEMISPHERE = (32,) + (16,) * 8
 SMALL = (4,) + (2,) * 8

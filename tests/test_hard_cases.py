@@ -15,9 +15,12 @@ import numpy as np
 import pytest
 
 from cli_helpers import RES, copy_sample, decision_line, h5_arrays, invoke, ok
-from pipelines import cubemap, images
-from pipelines import light as lt
-from pipelines.normal_equations import NormalEquations, SystemPart
+from pipelines.light import cubemap
+from pipelines.io import images
+from pipelines.light import solution as lt
+from pipelines.light import bases
+from pipelines.io import light_file
+from pipelines.light.system import LightSystem, SystemPart
 
 H, W = 144, 192  # the sample camera
 
@@ -41,7 +44,7 @@ def report(scene: Path) -> dict:
 
 
 def solved_light(scene: Path) -> tuple[np.ndarray, cubemap.CubeMap]:
-    texels, cube, _ = lt.read_solution_light(scene / "out" / "coefficients.h5")
+    texels, cube, _ = light_file.read_solution_light(scene / "out" / "coefficients.h5")
     return texels, cube
 
 
@@ -152,8 +155,8 @@ def test_duplicate_pixels_change_nothing():
         return SystemPart(Tk.T @ Tk, Tk.T @ bk, np.sum(bk**2, axis=0), len(bk))
 
     for basis in ("wavelet", "quadtree", "discrete", "points", "sh"):
-        once = lt.solve(NormalEquations(part(fit, 1), part(held, 1), 0.0), cube, basis)
-        twice = lt.solve(NormalEquations(part(fit, 2), part(held, 2), 0.0), cube, basis)
+        once = bases.solve(LightSystem(part(fit, 1), part(held, 1), 0.0), cube, basis)
+        twice = bases.solve(LightSystem(part(fit, 2), part(held, 2), 0.0), cube, basis)
         np.testing.assert_allclose(twice.light, once.light, rtol=1e-6, atol=1e-9 * np.abs(once.light).max(),
                                    err_msg=basis)
 
@@ -261,16 +264,16 @@ def test_every_texel_unobservable_but_three():
     def part(rows):
         return SystemPart(T[rows].T @ T[rows], T[rows].T @ b[rows], np.sum(b[rows] ** 2, axis=0), len(b[rows]))
 
-    ne = NormalEquations(part(fit), part(held), 0.0)
+    ne = LightSystem(part(fit), part(held), 0.0)
     for basis in ("wavelet", "quadtree", "discrete", "points", "sh"):
-        sol = lt.solve(ne, cube, basis)
+        sol = bases.solve(ne, cube, basis)
         assert np.all(np.isfinite(sol.light)), basis
         if basis != "sh":
             assert sol.light.min() >= 0, basis
             unseen = np.setdiff1d(np.arange(n), seen)
             assert np.all(sol.light[unseen] == 0), basis
             assert sol.fit_rmse < 0.02, (basis, sol.fit_rmse)
-    notes = lt.diagnose(ne, lt.solve(ne, cube, "discrete"), cube, relit_error=0.01)
+    notes = lt.diagnose(ne, bases.solve(ne, cube, "discrete"), cube, relit_error=0.01)
     assert any("determine only 3 of the 9" in w for w in notes), notes
 
 
@@ -278,7 +281,7 @@ def test_convex_object_without_shadows_sees_only_a_blurred_light(tmp_path):
     """A lone sphere (no ground, nothing casts a shadow): all 9 low-frequency components are
     determined, but ~99 % of what its pixels see lies in them (a clamped cosine); the solve says
     so. The sample (Spot casting shadows on its ground) stays below the threshold (test above)."""
-    from pipelines.insert import sphere
+    from pipelines.geometry.mesh import sphere
 
     scene = copy_sample(tmp_path / "sphere")
     m = sphere(0.5, 4)

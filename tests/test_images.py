@@ -4,15 +4,7 @@ import numpy as np
 import pytest
 
 from pipelines.errors import InputError
-from pipelines.images import (
-    linear_to_srgb,
-    read_image,
-    read_latlong,
-    srgb_to_linear,
-    tonemap,
-    write_exr,
-    write_png,
-)
+from pipelines.io.images import linear_to_srgb, read_image, read_latlong, srgb_to_linear, tonemap, write_exr, write_png
 
 
 def write_raw(path, array, fmt_name):

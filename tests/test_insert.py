@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from cli_helpers import check_bad_input, invoke, ok
-from pipelines import images
-from pipelines import insert as ins
-from pipelines.scene import load_mesh
+from pipelines.io import images
+from pipelines.geometry import mesh as ins
+from pipelines.io.scene_files import load_mesh
 
 SCENES = Path(__file__).parent / "data" / "scenes"
 AT, RADIUS, RES = (0.75, -0.55, 0.45), 0.22, "16"

@@ -14,12 +14,16 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from pipelines import haar
-from pipelines import light as lt
-from pipelines.cubemap import CubeMap
-from pipelines.haar import HaarTree
-from pipelines.normal_equations import NormalEquations, SystemPart, build_normal_equations, holdout_mask
-from pipelines.render import Material, render, transport
+from pipelines.light import haar
+from pipelines.light import solution as lt
+from pipelines.io import light_file
+from pipelines.light.bases import sh
+from pipelines.light import bases
+from pipelines.light.cubemap import CubeMap
+from pipelines.light.haar import HaarTree
+from pipelines.light.system import LightSystem, SystemPart, build_normal_equations, holdout_mask
+from pipelines.model.materials import Material
+from pipelines.model.render import render, transport
 from test_render import make_vis
 
 SCENE = "spot_overcast"
@@ -55,7 +59,7 @@ def add_noise(clean, fraction, seed):
     return clean + noise, noise
 
 
-def exact_normal_equations(vis, photo, held) -> NormalEquations:
+def exact_normal_equations(vis, photo, held) -> LightSystem:
     """G = T'T, h = T'b in float64 from the dense transport in one product (the library folds
     blocks of rows on worker threads): an independent reference system for the noise-free checks."""
     D, _ = transport(vis.dense(), vis.samples.normal, vis.samples.view, vis.cube, WHITE)
@@ -65,7 +69,7 @@ def exact_normal_equations(vis, photo, held) -> NormalEquations:
         Ts, b = T[sel], photo[sel]
         return SystemPart(Ts.T @ Ts, Ts.T @ b, (b**2).sum(axis=0), int(sel.sum()), np.ones(3))
 
-    return NormalEquations(part(~held), part(held), 0.0)
+    return LightSystem(part(~held), part(held), 0.0)
 
 
 def objective(part: SystemPart, light: np.ndarray) -> float:
@@ -101,7 +105,7 @@ def test_noise_free_recovery_is_exact_on_an_exact_system(scene8, sun_sky8, level
     equations: relit 1.9e-7 (fit_rmse) / 3.2e-7 and 2.0e-7 (rendered), light 3.1e-6 / 2.9e-6."""
     vis, cube, held = scene8
     L, sun, photo = sun_sky8["light"], sun_sky8["sun"], sun_sky8["photo"]
-    sol = lt.solve(sun_sky8["exact"], cube, "wavelet", levels=levels)
+    sol = bases.solve(sun_sky8["exact"], cube, "wavelet", levels=levels)
     assert sol.fit_rmse < 1e-6
     assert rel_rmse(render(vis, sol.light, WHITE), photo) < 1e-6
     _, unobservable = lt.observability(sun_sky8["exact"])
@@ -119,7 +123,7 @@ def test_noise_free_recovery(scene8, sun_sky8, levels):
     below 1e-6 relative, the light on every texel, the sun to 1e-4."""
     vis, cube, held = scene8
     L, sun, photo = sun_sky8["light"], sun_sky8["sun"], sun_sky8["photo"]
-    sol = lt.solve(sun_sky8["ne"], cube, "wavelet", levels=levels)
+    sol = bases.solve(sun_sky8["ne"], cube, "wavelet", levels=levels)
     assert sol.basis == "wavelet"
     assert sol.fit_rmse < 1e-6
     assert rel_rmse(render(vis, sol.light, WHITE), photo) < 1e-6
@@ -140,7 +144,7 @@ def test_noisy_fit_is_at_the_noise_floor(scene8):
     clean = render(vis, L, WHITE)
     photo, noise = add_noise(clean, 0.01, seed=1)
     ne = build_normal_equations(vis, photo, WHITE, held_out=held)
-    sol = lt.solve(ne, cube, "wavelet", levels="auto")
+    sol = bases.solve(ne, cube, "wavelet", levels="auto")
     relit = render(vis, sol.light, WHITE)
     noise_level = rel_rmse(photo - noise, photo)  # |noise| / |photo|
     assert rel_rmse(relit, photo) == pytest.approx(noise_level, rel=0.1)
@@ -153,7 +157,7 @@ def test_noisy_fit_is_at_the_noise_floor(scene8):
 def _block_sun_light(cube, block):
     """Sky 0.2 + a sun 50 filling one `block` x `block` texel block: representable by `discrete`
     at face resolution R / block."""
-    tree = lt.uniform_tree(cube, cube.resolution // block)
+    tree = haar.uniform_tree(cube, cube.resolution // block)
     P = haar.leaf_matrix(tree)
     values = np.full(tree.n_leaves, 0.2)
     values[int(P.tocsr()[int(cube.lookup(SUN_DIRECTION))].indices[0])] = 50.0
@@ -165,7 +169,7 @@ def _check_discrete(vis, face_resolution, block, relit_bound):
     L = _block_sun_light(cube, block)
     photo = render(vis, L, WHITE)
     ne = build_normal_equations(vis, photo, WHITE, held_out=holdout_mask(vis.samples.pixel, 0.1))
-    sol = lt.solve(ne, cube, "discrete", face_resolution=face_resolution)
+    sol = bases.solve(ne, cube, "discrete", face_resolution=face_resolution)
     assert sol.basis == "discrete" and sol.details["face_resolution"] == face_resolution
     assert sol.n_coefficients == 3 * face_resolution**2
     assert sol.solver["kkt_residual"] <= 1e-6
@@ -207,18 +211,18 @@ def test_discrete_at_64_on_the_photo(forward_render):
     """discrete at 64 x 64 faces (12,288 unknowns, G is 1.2 GB) on the noisy Mitsuba photo at every
     8th used pixel (6,540): completes at a KKT point without fallback, and relights the view as
     well as the wavelet solve on the same system (the photo's noise and the model's floor, ~0.6 %)."""
-    from pipelines import images
+    from pipelines.io import images
 
     fr = forward_render(SCENE, 64, 8)
     vis = fr.visibility
     rows, cols = vis.samples.pixel[:, 0], vis.samples.pixel[:, 1]
     photo = images.read_image(fr.scene.path / "image.exr").pixels[rows, cols].astype(np.float64)
     ne = build_normal_equations(vis, photo, WHITE, held_out=holdout_mask(vis.samples.pixel, 0.1))
-    sol = lt.solve(ne, vis.cube, "discrete", face_resolution=64)
+    sol = bases.solve(ne, vis.cube, "discrete", face_resolution=64)
     assert sol.n_coefficients == 12288
     assert sol.solver["kkt_residual"] <= 1e-6 and sol.solver["fallback"] is False
     assert np.all(sol.light >= 0)
-    wavelet = lt.solve(ne, vis.cube, "wavelet")
+    wavelet = bases.solve(ne, vis.cube, "wavelet")
     relit = rel_rmse(render(vis, sol.light, WHITE), photo)
     assert relit < 0.01
     assert relit <= rel_rmse(render(vis, wavelet.light, WHITE), photo) * 1.02
@@ -249,7 +253,7 @@ def test_unobservable_texels_get_no_light(scene8, half_blind, basis):
     relative, unobservable = lt.observability(ne)
     np.testing.assert_array_equal(unobservable, blind)
     assert np.all(relative[blind] == 0) and relative[~blind].min() > 0.01
-    sol = lt.solve(ne, cube, basis)
+    sol = bases.solve(ne, cube, basis)
     assert sol.details["unobservable_texels"] == int(blind.sum())
     assert np.all(sol.light[blind] == 0.0)
     relit = rel_rmse(render(vis_half, sol.light, WHITE), photo)
@@ -274,7 +278,7 @@ def partial_sky(scene8):
 
 
 def _wavelet_level1_tree(ne, cube):
-    return lt.solve(ne, cube, "wavelet", levels=2).levels[1].tree
+    return bases.solve(ne, cube, "wavelet", levels=2).levels[1].tree
 
 
 @pytest.mark.parametrize("tree_source", ["full_depth_1", "wavelet_level_1"])
@@ -289,7 +293,7 @@ def test_wavelet_qp_and_quadtree_reach_the_same_objective(scene8, partial_sky, t
     tree = HaarTree.full(cube.tile_sizes, 1) if tree_source == "full_depth_1" else _wavelet_level1_tree(ne, cube)
     assert 9 < tree.n_coefficients <= 64
     P = haar.leaf_matrix(tree)
-    leaf_part = lt.project(ne.fit, P)
+    leaf_part = ne.fit.project(P)
     x, info = lt.solve_nonnegative(leaf_part)
     assert info["kkt_residual"] <= 1e-9
     assert min(info["n_bound"]) > 0  # an active constraint: the QP is not just least squares
@@ -312,7 +316,7 @@ def test_wavelet_qp_and_quadtree_reach_the_same_objective(scene8, partial_sky, t
     np.testing.assert_allclose(haar.synthesise(coefficients, tree), P @ x, rtol=0, atol=1e-9 * np.abs(x).max())
     # and the solvers' own levels on that tree hold exactly this solution
     if tree_source == "wavelet_level_1":
-        level = lt.solve(ne, cube, "wavelet", levels=2).levels[1]
+        level = bases.solve(ne, cube, "wavelet", levels=2).levels[1]
         np.testing.assert_allclose(level.coefficients, coefficients, rtol=1e-6, atol=1e-9 * np.abs(x).max())
         np.testing.assert_allclose(level.light, P @ x, rtol=1e-6, atol=1e-9 * np.abs(x).max())
 
@@ -322,7 +326,7 @@ def test_real_sh_is_orthonormal_on_the_sphere():
     """Order 2 (9 columns) on a full-sphere cube map with exact solid angles as weights:
     |Y'WY - I| measured 6.4e-3 / 1.6e-3 / 4.0e-4 at R = 8 / 16 / 32 (midpoint rule, O(1/R^2))."""
     cube = CubeMap(32, hemisphere=False)
-    Y = lt.real_sh(2, cube.directions)
+    Y = sh.real_sh(2, cube.directions)
     assert Y.shape == (cube.n_texels, 9)
     gram = Y.T @ (cube.solid_angles[:, None] * Y)
     np.testing.assert_allclose(gram, np.eye(9), atol=1e-3)
@@ -339,19 +343,19 @@ def test_sh_recovers_a_low_order_light(scene8):
     plain SH fit recovers it (measured light error 1.8e-4, relit 4.3e-6; the projected system's
     condition number is 7.5e5)."""
     vis, cube, held = scene8
-    Y = lt.real_sh(2, cube.directions)
+    Y = sh.real_sh(2, cube.directions)
     L = (Y @ SH_TRUTH)[:, None] * np.array([1.0, 0.8, 0.6])
     assert L.min() > 0
     photo = render(vis, L, WHITE)
     ne = build_normal_equations(vis, photo, WHITE, held_out=held)
-    sol = lt.solve(ne, cube, "sh", sh_order=2)
+    sol = bases.solve(ne, cube, "sh", sh_order=2)
     assert sol.basis == "sh" and sol.n_coefficients == 9
     assert light_error(sol.light, L, cube) < 1e-3
     assert rel_rmse(render(vis, sol.light, WHITE), photo) < 1e-4
     assert sol.details["negative_fraction"] == 0.0
     np.testing.assert_allclose(sol.coefficients[:, 0], SH_TRUTH, atol=1e-2)
     # the non-negative variant has nothing to change here
-    plus = lt.solve(ne, cube, "sh", sh_nonnegative=True)
+    plus = bases.solve(ne, cube, "sh", sh_nonnegative=True)
     assert plus.basis == "sh+" and light_error(plus.light, L, cube) < 1e-3
 
 
@@ -360,8 +364,8 @@ def test_nonnegative_sh_never_goes_negative(scene8, sun_sky8):
     fit error of 8.66 %; `sh_nonnegative` keeps every texel >= 0 (measured min -2e-17) and pays
     for it (9.99 %), never gaining on the unconstrained optimum."""
     vis, cube, held = scene8
-    plain = lt.solve(sun_sky8["ne"], cube, "sh")
-    plus = lt.solve(sun_sky8["ne"], cube, "sh", sh_nonnegative=True)
+    plain = bases.solve(sun_sky8["ne"], cube, "sh")
+    plus = bases.solve(sun_sky8["ne"], cube, "sh", sh_nonnegative=True)
     assert plain.details["negative_fraction"] > 0.05 and plain.light.min() < 0
     assert plus.basis == "sh+" and plus.details["nonnegative"] is True
     assert plus.light.min() >= -1e-9
@@ -385,7 +389,7 @@ def test_points_find_three_suns(scene8):
     L[suns[2]] = 10.0
     photo = render(vis, L, WHITE)
     ne = build_normal_equations(vis, photo, WHITE, held_out=held)
-    sol = lt.solve(ne, cube, "points", levels="auto")
+    sol = bases.solve(ne, cube, "points", levels="auto")
     points = sol.details["points"]
     found = [p["texel"] for p in points]
     assert sorted(found) == sorted(suns.tolist())
@@ -418,8 +422,8 @@ def test_auto_levels_stop_before_overfitting(smooth_sky16, basis):
     seen and not worse than the last level's."""
     vis, cube, ne = smooth_sky16
     min_gain = 0.01
-    auto = lt.solve(ne, cube, basis, levels="auto", min_gain=min_gain)
-    full = lt.solve(ne, cube, basis, levels=64)  # until the tree stops changing
+    auto = bases.solve(ne, cube, basis, levels="auto", min_gain=min_gain)
+    full = bases.solve(ne, cube, basis, levels=64)  # until the tree stops changing
     assert full.levels[-1].n_coefficients == cube.n_texels
     held_full = [lv.held_out_rmse for lv in full.levels]
     assert held_full[-1] > min(held_full)  # the finest level is overfitted
@@ -440,11 +444,11 @@ def test_auto_levels_stop_before_overfitting(smooth_sky16, basis):
 def test_solution_file_round_trip(scene8, sun_sky8, tmp_path, basis):
     vis, cube, held = scene8
     ne = sun_sky8["ne"]
-    sol = lt.solve(ne, cube, basis, levels=3 if basis == "wavelet" else "auto")
+    sol = bases.solve(ne, cube, basis, levels=3 if basis == "wavelet" else "auto")
     _, unobservable = lt.observability(ne)
     path = tmp_path / "light.h5"
-    lt.write_solution(path, sol, cube, unobservable, attrs={"scene": SCENE})
-    light, cube_back, attrs = lt.read_solution_light(path)
+    light_file.write_solution(path, sol, cube, unobservable, attrs={"scene": SCENE})
+    light, cube_back, attrs = light_file.read_solution_light(path)
     assert cube_back == cube
     np.testing.assert_allclose(light, sol.light, rtol=1e-6, atol=0)  # stored as float32
     assert attrs["basis"] == basis and attrs["resolution"] == 8 and bool(attrs["hemisphere"])
@@ -454,11 +458,11 @@ def test_solution_file_round_trip(scene8, sun_sky8, tmp_path, basis):
         np.testing.assert_array_equal(f["unobservable"][:], unobservable)
         assert len(f["levels"]) == len(sol.levels)
         if basis == "wavelet":
-            assert lt.read_tree(f["tree"]) == sol.tree
+            assert light_file.read_tree(f["tree"]) == sol.tree
             assert f["tree/coefficient_index"].shape == (sol.tree.n_coefficients, 5)
             assert f["tree/leaves"].shape == (sol.tree.n_leaves, 4)
             for lv in sol.levels:
-                assert lt.read_tree(f[f"levels/{lv.index:02d}/tree"]) == lv.tree
+                assert light_file.read_tree(f[f"levels/{lv.index:02d}/tree"]) == lv.tree
                 assert f[f"levels/{lv.index:02d}"].attrs["fit_rmse"] == lv.fit_rmse
         else:
             assert "tree" not in f
@@ -466,4 +470,4 @@ def test_solution_file_round_trip(scene8, sun_sky8, tmp_path, basis):
     with h5py.File(tmp_path / "other.h5", "w") as f:
         f.attrs["format"] = "something-else"
     with pytest.raises(ValueError):
-        lt.read_solution_light(tmp_path / "other.h5")
+        light_file.read_solution_light(tmp_path / "other.h5")

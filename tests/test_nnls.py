@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from pipelines.nnls import nnls_gram, nnls_gram_multi
+from pipelines.light.nnls import nnls_gram, nnls_gram_multi
 
 
 def problem(seed, m, n, density=0.5):

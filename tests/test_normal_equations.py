@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from pipelines.cubemap import CubeMap
-from pipelines.normal_equations import build_normal_equations, holdout_mask
-from pipelines.render import Material, render
+from pipelines.light.cubemap import CubeMap
+from pipelines.light.system import build_normal_equations, holdout_mask
+from pipelines.model.materials import Material
+from pipelines.model.render import render
 from test_render import make_samples, make_vis, unit
 
 

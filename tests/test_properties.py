@@ -40,13 +40,15 @@ from hypothesis import strategies as st
 from scipy.optimize import nnls as scipy_nnls
 
 from cli_helpers import assert_one_error_line, invoke
-from pipelines import light as lt
-from pipelines import scene as sc
-from pipelines.cubemap import CubeMap
+from pipelines.light import solution as lt
+from pipelines.light import bases
+from pipelines.io import scene_files as sc
+from pipelines.geometry import camera
+from pipelines.light.cubemap import CubeMap
 from pipelines.errors import InputError
-from pipelines.nnls import nnls_gram
-from pipelines.normal_equations import NormalEquations, SystemPart
-from pipelines.render import MODELS, Material
+from pipelines.light.nnls import nnls_gram
+from pipelines.light.system import LightSystem, SystemPart
+from pipelines.model.materials import MODELS, Material
 from wavelight_cli.cache import write_json_atomic
 from wavelight_cli.main import VIS_SECTION, _load_scene_toml, cli
 
@@ -309,7 +311,7 @@ extra_values = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(-100
        extra=st.dictionaries(text.filter(lambda k: k not in {"width", "height", "fx", "fy", "cx", "cy", "dist"}),
                              extra_values, max_size=3))
 def test_camera_round_trip(workdir, width, height, fx, fy, cx, cy, dist, extra):
-    cam = sc.Camera(width, height, fx, fy, cx, cy, tuple(dist), extra)
+    cam = camera.Camera(width, height, fx, fy, cx, cy, tuple(dist), extra)
     path = workdir / "camera_rt.json"
     write_json_atomic(path, cam.to_json())
     back = sc.read_camera(path)
@@ -321,7 +323,7 @@ def test_camera_round_trip(workdir, width, height, fx, fy, cx, cy, dist, extra):
 @given(q=unit_quaternions, t=st.lists(st.floats(-1e6, 1e6), min_size=3, max_size=3),
        extra=st.dictionaries(text.filter(lambda k: k not in {"R", "t"}), extra_values, max_size=3))
 def test_pose_round_trip(workdir, q, t, extra):
-    pose = sc.Pose(rotation(q), np.asarray(t, dtype=np.float64), extra)
+    pose = camera.Pose(rotation(q), np.asarray(t, dtype=np.float64), extra)
     path = workdir / "pose_rt.json"
     write_json_atomic(path, pose.to_json())
     back = sc.read_pose(path)
@@ -332,7 +334,7 @@ def test_pose_round_trip(workdir, q, t, extra):
 
 @props(100)
 @given(kd=st.lists(st.floats(0, 1e3), min_size=3, max_size=3), ks=st.lists(st.floats(0, 1e3), min_size=3, max_size=3),
-       n=st.floats(0, 1e4), model=st.sampled_from(MODELS))
+       n=st.floats(0, 1e4), model=st.sampled_from(tuple(MODELS)))
 def test_material_round_trip(kd, ks, n, model):
     mat = Material(tuple(kd), tuple(ks), n, model)
     assert Material.from_json(json.loads(json.dumps(mat.to_json()))) == mat
@@ -1179,7 +1181,7 @@ def light_scenes(draw):
             h = h * a[None, :]  # T_c = a_c T: h_c = a_c T'b_c, G_c = a_c^2 T'T
         return SystemPart(base.T @ base, h, bb, int(sel.sum()), a)
 
-    ne = NormalEquations(part(~held), part(held), 0.0)
+    ne = LightSystem(part(~held), part(held), 0.0)
     return {"cube": cube, "Ts": Ts, "b": b, "blind": blind, "ne": ne, "truth": L,
             "seed": int(rng.integers(0, 2**32))}
 
@@ -1205,7 +1207,7 @@ BASIS_CASES = [("wavelet", False), ("quadtree", False), ("discrete", False), ("p
 @given(scene=light_scenes(), levels=st.sampled_from(["auto", 1, 2, 3]))
 def test_light_solve_is_non_negative_and_fits_no_worse_than_no_light(basis, sh_nonnegative, scene, levels):
     cube, Ts, b, ne = scene["cube"], scene["Ts"], scene["b"], scene["ne"]
-    sol = lt.solve(ne, cube, basis, levels=levels, sh_nonnegative=sh_nonnegative)
+    sol = bases.solve(ne, cube, basis, levels=levels, sh_nonnegative=sh_nonnegative)
     light = sol.light
     assert light.shape == (cube.n_texels, 3) and np.all(np.isfinite(light))
     peak = float(np.abs(light).max(initial=0.0))
@@ -1221,7 +1223,7 @@ def test_light_solve_is_non_negative_and_fits_no_worse_than_no_light(basis, sh_n
     both_bb = float(np.sum(b**2))
     if both_bb > 0:
         assert abs(sol.fit_rmse**2 * both_bb - ours) <= tol + 1e-9 * both_bb, (sol.fit_rmse**2 * both_bb, ours)
-        both = lt.combine(ne.fit, ne.held_out)
+        both = ne.fit.combine(ne.held_out)
         assert abs(both.residual(light).sum() - ours) <= tol + 1e-9 * both_bb  # SystemPart.residual agrees
     if basis != "points":
         # a constant light is in the span of every other basis (SH's l = 0 term, a tree's roots, the
@@ -1232,7 +1234,7 @@ def test_light_solve_is_non_negative_and_fits_no_worse_than_no_light(basis, sh_n
             "the best constant light is better"
     if basis in ("wavelet", "quadtree"):
         # the chosen tree refines the 9 (or 6) tile roots: no worse than the best constant per tile
-        from pipelines import haar
+        from pipelines.light import haar
         P = haar.leaf_matrix(haar.HaarTree.roots(cube.tile_sizes)).toarray()
         best = np.column_stack([P @ scipy_nnls(Ts[c] @ P, b[:, c], maxiter=1000)[0] for c in range(3)])
         assert ours <= direct_residual(Ts, b, best) + residual_tolerance(Ts, b, light, best), \
@@ -1251,7 +1253,7 @@ def test_light_solve_is_non_negative_and_fits_no_worse_than_no_light(basis, sh_n
 @given(scene=light_scenes(), data=st.data())
 def test_discrete_light_is_no_worse_than_random_non_negative_lights(scene, data):
     cube, Ts, b = scene["cube"], scene["Ts"], scene["b"]
-    sol = lt.solve(scene["ne"], cube, "discrete")
+    sol = bases.solve(scene["ne"], cube, "discrete")
     light = sol.light
     assert np.all(light >= 0) and np.all(np.isfinite(light))
     ours = direct_residual(Ts, b, light)
@@ -1282,11 +1284,11 @@ def test_discrete_light_is_no_worse_than_random_non_negative_lights(scene, data)
         assert ours <= theirs + gain + residual_tolerance(Ts, b, light, p), f"{name}: {ours:.8g} > {theirs:.8g}"
 
 
-def rescaled(ne: NormalEquations, s: float) -> NormalEquations:
+def rescaled(ne: LightSystem, s: float) -> LightSystem:
     """The same scene photographed s times brighter: h -> s h, b'b -> s^2 b'b (G unchanged)."""
     def part(p: SystemPart) -> SystemPart:
         return SystemPart(p.G, s * p.h, s * s * p.bb, p.n_pixels, p.channel_scale)
-    return NormalEquations(part(ne.fit), part(ne.held_out), ne.seconds)
+    return LightSystem(part(ne.fit), part(ne.held_out), ne.seconds)
 
 
 @props(25)
@@ -1298,9 +1300,9 @@ def test_light_solve_is_brightness_equivariant(basis, sh_nonnegative, scene, k):
     Nonnegative SH is left out: SLSQP's stopping rule and its start are not scale-free (the fit
     of one scene differs between brightness 1 and 2^20), so only its fit is checked (above)."""
     cube, ne = scene["cube"], scene["ne"]
-    one = lt.solve(ne, cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
+    one = bases.solve(ne, cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
     s = 2.0**k
-    other = lt.solve(rescaled(ne, s), cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
+    other = bases.solve(rescaled(ne, s), cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
     np.testing.assert_allclose(other, s * one, rtol=1e-9, atol=1e-12 * s * float(np.abs(one).max(initial=0.0)))
 
 
@@ -1317,7 +1319,7 @@ def test_nonnegative_sh_fits_no_worse_than_no_light_when_dim():
     b = (T @ L + 0.1 * rng.normal(size=(m, 3))) * 2.0**-30
     part = SystemPart(T.T @ T, T.T @ b, (b**2).sum(axis=0), m)
     empty = SystemPart(np.zeros((N, N)), np.zeros((N, 3)), np.zeros(3), 0)
-    light = lt.solve(NormalEquations(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
+    light = bases.solve(LightSystem(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
     assert np.all(light >= 0)
     assert direct_residual([T] * 3, b, light) <= float(np.sum(b**2)) * (1 + 1e-9)
 
@@ -1334,6 +1336,6 @@ def test_nonnegative_sh_on_one_dark_pixel():
     b = np.full((1, 3), -1.7477209205516195e-07)
     part = SystemPart(T.T @ T, T.T @ b, (b**2).sum(axis=0), 1)
     empty = SystemPart(np.zeros((12, 12)), np.zeros((12, 3)), np.zeros(3), 0)
-    light = lt.solve(NormalEquations(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
+    light = bases.solve(LightSystem(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
     assert np.all(light >= 0)
     assert direct_residual([T] * 3, b, light) <= float(np.sum(b**2)) * (1 + 1e-9)

@@ -7,11 +7,12 @@ z in [0.5, 1.5] above the origin and an icosphere (radius 0.4) at (1, -1, 0.6).
 import numpy as np
 import pytest
 
-from pipelines.camera import PixelSamples, pixel_rays, pixel_samples
-from pipelines.cubemap import CubeMap
-from pipelines.raycast import MISS, RAY_OFFSET, make_backend
-from pipelines.scene import Camera, Mesh, Pose
-from pipelines.visibility import compute_visibility, decode
+from pipelines.geometry.camera import PixelSamples, pixel_rays, pixel_samples
+from pipelines.light.cubemap import CubeMap
+from pipelines.geometry.raycast import MISS, RAY_OFFSET, make_backend
+from pipelines.geometry.camera import Camera, Pose
+from pipelines.geometry.mesh import Mesh
+from pipelines.geometry.visibility import compute_visibility, decode
 
 BACKENDS = ["embree", "reference"]
 BOX_LO, BOX_HI = np.array([-0.5, -0.5, 0.5]), np.array([0.5, 0.5, 1.5])

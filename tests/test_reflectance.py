@@ -14,10 +14,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipelines import light as lt
-from pipelines import reflectance as rf
-from pipelines.normal_equations import build_normal_equations, holdout_mask
-from pipelines.render import Material, render
+from pipelines.light import bases as lt
+from pipelines.model import reflectance as rf
+from pipelines.light.system import build_normal_equations, holdout_mask
+from pipelines.model.materials import Material
+from pipelines.model.render import render
 
 SCENE = "teapot_sun_phong"
 RESOLUTION = 16

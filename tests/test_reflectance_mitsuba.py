@@ -12,11 +12,11 @@ spot_overcast and bunny_sun are Lambertian (truth kd 0.8 / 0.7): `auto` must kee
 import numpy as np
 import pytest
 
-from pipelines import images
-from pipelines import light as lt
-from pipelines import reflectance as rf
-from pipelines.normal_equations import build_normal_equations, holdout_mask
-from pipelines.render import Material
+from pipelines.io import images
+from pipelines.light import bases as lt
+from pipelines.model import reflectance as rf
+from pipelines.light.system import build_normal_equations, holdout_mask
+from pipelines.model.materials import Material
 
 RESOLUTION = 32
 HELD_OUT = 0.1

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines import camera as cam
-from pipelines import registration as reg
+from pipelines.geometry import camera as cam
+from pipelines.geometry import registration as reg
 from pipelines.errors import InputError
-from pipelines.scene import read_camera, read_correspondences, read_pose
+from pipelines.io.scene_files import read_camera, read_correspondences, read_pose
 
 SCENES = Path(__file__).parent / "data" / "scenes"
 NAMES = ("teapot_sun_phong", "bunny_sun", "spot_overcast")
@@ -154,8 +154,9 @@ def test_distance_to_mesh_is_exact():
 # -- refinement against the photo's edges -----------------------------------------------------------
 
 def _edges_setup(name):
-    from pipelines import images, raycast
-    from pipelines.scene import load_mesh
+    from pipelines.io import images
+    from pipelines.geometry import raycast
+    from pipelines.io.scene_files import load_mesh
 
     d = SCENES / name
     mesh = load_mesh(d / "mesh.ply")

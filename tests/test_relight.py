@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from cli_helpers import check_bad_input, invoke, ok
-from pipelines import cubemap, images
+from pipelines.light import cubemap
+from pipelines.io import images
 
 SCENES = Path(__file__).parent / "data" / "scenes"
 

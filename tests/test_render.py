@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from pipelines.camera import PixelSamples
-from pipelines.cubemap import CubeMap
-from pipelines.render import Material, lobe_cosines, lobe_norm, pixels_to_image, render, specular_factors, transport
-from pipelines.visibility import VisibilityData
+from pipelines.geometry.camera import PixelSamples
+from pipelines.light.cubemap import CubeMap
+from pipelines.model.materials import Material
+from pipelines.model.render import lobe_cosines, lobe_norm, pixels_to_image, render, specular_factors, transport
+from pipelines.geometry.visibility import VisibilityData
 
 
 def unit(v):
@@ -102,7 +103,7 @@ def test_rgb_albedo_and_light_scale_channels():
 def _subtexel_rule(cube, k):
     """Sub-texel directions (k*k, N, 3) and exact solid angles (k*k, N), in float64, from the face
     geometry (independent of CubeMap.quadrature)."""
-    from pipelines.cubemap import face_rectangle_solid_angle
+    from pipelines.light.cubemap import face_rectangle_solid_angle
 
     R = cube.resolution
     dirs, weights = [], []

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from pipelines.errors import InputError
-from pipelines.scene import Camera, Pose, find_mesh, load_mesh, read_camera, read_correspondences, read_pose
+from pipelines.geometry.camera import Camera, Pose
+from pipelines.io.scene_files import find_mesh, load_mesh, read_camera, read_correspondences, read_pose
 
 CAMERA = {"width": 640, "height": 480, "fx": 525.5, "fy": 520.25, "cx": 319.5, "cy": 239.5,
           "dist": [0.1, -0.05, 0.001, -0.002, 0.01]}

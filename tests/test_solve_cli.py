@@ -39,7 +39,7 @@ def _report(scene) -> dict:
 
 def _power(latlong: np.ndarray) -> np.ndarray:
     """Total power (radiance x solid angle) per channel of a lat-long light."""
-    from pipelines.cubemap import latlong_solid_angles
+    from pipelines.light.cubemap import latlong_solid_angles
 
     return (latlong * latlong_solid_angles(latlong.shape[0])[..., None]).sum(axis=(0, 1))
 
@@ -54,7 +54,7 @@ def _raw_exr(path) -> np.ndarray:
 
 
 def _used_pixels(scene) -> tuple[np.ndarray, np.ndarray]:
-    from pipelines.visibility import read_visibility
+    from pipelines.io.visibility_file import read_visibility
 
     data = read_visibility(scene / ".wavelight" / "visibility.h5")
     return data.samples.pixel[:, 0], data.samples.pixel[:, 1]
@@ -63,7 +63,8 @@ def _used_pixels(scene) -> tuple[np.ndarray, np.ndarray]:
 def _true_sun(scene) -> np.ndarray:
     """The sun of the truth light: its brightest lat-long pixel (scene_params.json holds only the
     azimuth rotation applied to the HDR, not the direction)."""
-    from pipelines import cubemap, images
+    from pipelines.light import cubemap
+    from pipelines.io import images
 
     env = images.read_latlong(scene / "truth" / "env_latlong.exr")
     H = env.shape[0]
@@ -116,7 +117,7 @@ def test_solve_writes_every_output_and_records_them(solved):
     assert set(rec["inputs"]) == {"photo"}
     assert rec["input_paths"]["photo"] == "image.exr"
     # previews are real images of the photo's size / the cross layout
-    from pipelines import images
+    from pipelines.io import images
 
     relit = images.read_image(scene / "out" / "relit.exr").pixels
     assert relit.shape == (144, 192, 3)
@@ -140,7 +141,7 @@ def test_solve_light_latlong_is_a_valid_hemisphere_light(solved):
     assert np.all(raw[below] == 0.0), "hemisphere mode: no light below the horizon"
     assert raw[~below].max() > 0.0
     # read_latlong (the exchange-format reader) accepts it as is
-    from pipelines import images
+    from pipelines.io import images
 
     assert np.array_equal(images.read_latlong(scene / "out" / "light_latlong.exr"), raw)
 
@@ -221,8 +222,8 @@ def test_solve_result_line_on_stdout(solved):
 def test_coefficients_h5_matches_light_latlong(solved):
     import h5py
 
-    from pipelines import cubemap
-    from pipelines.light import read_solution_light
+    from pipelines.light import cubemap
+    from pipelines.io.light_file import read_solution_light
 
     scene, _ = solved
     rep = _report(scene)
@@ -254,7 +255,8 @@ def test_coefficients_h5_matches_light_latlong(solved):
 # -- 4. the sun ----------------------------------------------------------------------------------
 
 def test_recovered_sun_direction(solved):
-    from pipelines import cubemap, images
+    from pipelines.light import cubemap
+    from pipelines.io import images
 
     scene, _ = solved
     b = _report(scene)["brightest_direction"]
@@ -272,7 +274,7 @@ def test_recovered_sun_direction(solved):
 def test_light_power_follows_the_material(solved, solved_copy):
     """Light x albedo is what is recovered: with kd = 1 the light is ~0.8 of the truth's power, with
     the true material ~1 (measured 0.806..0.815 and 1.007..1.019 per channel)."""
-    from pipelines import images
+    from pipelines.io import images
 
     truth = _power(images.read_latlong(solved_copy / "truth" / "env_latlong.exr"))
     default = _power(_raw_exr(solved[0] / "out" / "light_latlong.exr"))
@@ -296,7 +298,7 @@ def test_light_power_follows_the_material(solved, solved_copy):
 def test_render_of_the_solved_light_reproduces_relit(solved_copy):
     """The exchange-format light fed back into `render` gives the relit view again (up to the
     lat-long resampling: measured 2.1 %)."""
-    from pipelines import images
+    from pipelines.io import images
 
     ok(invoke(solved_copy, "render", "--resolution", RES, "--light", solved_copy / "out" / "light_latlong.exr"))
     relit = images.read_image(solved_copy / "out" / "relit.exr").pixels.astype(np.float64)
@@ -339,7 +341,7 @@ def test_solve_cache_skip_rerun_force_and_status(solved_copy):
     assert decision_line(err, "visibility").startswith("visibility: skipped")  # --force is the solve's only
 
     # a changed photo makes the solve stale, and the next solve reruns for it
-    from pipelines import images
+    from pipelines.io import images
 
     img = images.read_image(scene / "image.exr").pixels
     images.write_exr(scene / "image.exr", img * 1.01)
@@ -377,7 +379,7 @@ def test_every_basis(solved_copy, args, basis):
     rep = _report(scene)
     assert rep["basis"] == basis
     assert rep["solution"]["basis"] == basis
-    from pipelines.light import read_solution_light
+    from pipelines.io.light_file import read_solution_light
 
     light, cube, attrs = read_solution_light(scene / "out" / "coefficients.h5")
     assert attrs["basis"] == basis
@@ -476,7 +478,7 @@ def test_compare(solved, solved_copy):
     table_lines = [ln for ln in md.splitlines() if ln.startswith("| ")]
     assert table_lines[0].startswith("| basis | coefficients |")
     assert [ln.split("|")[1].strip() for ln in table_lines[1:]] == COMPARE_BASES
-    from pipelines import images
+    from pipelines.io import images
 
     assert images.read_image(scene / "out" / "compare.png").pixels.ndim == 3
     # the solve's results are untouched by compare, and compare is cached like every stage
@@ -494,7 +496,7 @@ def test_compare(solved, solved_copy):
 def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
     import OpenImageIO as oiio
 
-    from pipelines import images
+    from pipelines.io import images
 
     rows, cols = _used_pixels(scene)
     hdr = images.read_image(scene / "image.exr").pixels
@@ -523,7 +525,7 @@ def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
 def test_linear_input_flag(solved, solved_copy):
     """A linear 8-bit PNG read with --linear-input recovers the EXR's light (times the PNG's scale);
     read as sRGB it does not (measured power ratio 0.9997..1.0006 vs 0.37..0.42)."""
-    from pipelines import images
+    from pipelines.io import images
 
     scene = solved_copy
     hdr = images.read_image(scene / "image.exr").pixels
@@ -554,20 +556,20 @@ def _delete_photos(scene):
 
 
 def _photo_wrong_size(scene):
-    from pipelines.images import write_exr
+    from pipelines.io.images import write_exr
 
     write_exr(scene / "image.exr", np.full((100, 150, 3), 0.5, np.float32))
 
 
 def _photo_all_clipped(scene):
-    from pipelines.images import write_png
+    from pipelines.io.images import write_png
 
     (scene / "image.exr").unlink()
     write_png(scene / "image.png", np.ones((144, 192, 3)), already_display=True)
 
 
 def _photo_black(scene):
-    from pipelines.images import write_exr
+    from pipelines.io.images import write_exr
 
     write_exr(scene / "image.exr", np.zeros((144, 192, 3), np.float32))
 

@@ -15,10 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from pipelines import cubemap, haar, images
-from pipelines import light as lt
-from pipelines.normal_equations import NormalEquations, build_normal_equations, holdout_mask
-from pipelines.render import Material, render
+from pipelines.light import cubemap
+from pipelines.light import haar
+from pipelines.io import images
+from pipelines.light import solution as lt
+from pipelines.light import bases
+from pipelines.light.system import LightSystem, build_normal_equations, holdout_mask
+from pipelines.model.materials import Material
+from pipelines.model.render import render
 
 RESOLUTION = 32
 HELD_OUT = 0.1
@@ -32,14 +36,14 @@ class Problem:
     visibility: object
     cube: cubemap.CubeMap
     photo: np.ndarray  # (P, 3) image.exr at the used pixels
-    ne: NormalEquations
+    ne: LightSystem
     true_light: np.ndarray  # (N, 3) the scene's light on the cube map
     solutions: dict = field(default_factory=dict)
 
     def solve(self, basis: str, **kwargs) -> lt.LightSolution:
         key = (basis, tuple(sorted(kwargs.items())))
         if key not in self.solutions:
-            self.solutions[key] = lt.solve(self.ne, self.cube, basis, **kwargs)
+            self.solutions[key] = bases.solve(self.ne, self.cube, basis, **kwargs)
         return self.solutions[key]
 
     def relit_error(self, light: np.ndarray) -> float:
@@ -89,7 +93,7 @@ def test_wavelet_relights_the_input_view(problem, name, limit):
 def test_bunny_sun_within_3_percent_with_supersampled_visibility(mitsuba_scene):
     """`--supersample 2` (2 x 2 shadow rays per texel: fractional visibility, softer texel shadows)
     brings bunny_sun within the issue's 3 % (measured 2.68 %)."""
-    from pipelines import visibility as vis
+    from pipelines.geometry import visibility as vis
 
     scene = mitsuba_scene("bunny_sun")
     cube = cubemap.CubeMap(RESOLUTION)
@@ -97,7 +101,7 @@ def test_bunny_sun_within_3_percent_with_supersampled_visibility(mitsuba_scene):
     rows, cols = scene.samples.pixel[:, 0], scene.samples.pixel[:, 1]
     photo = images.read_image(scene.path / "image.exr").pixels[rows, cols].astype(np.float64)
     ne = build_normal_equations(data, photo, WHITE, held_out=holdout_mask(scene.samples.pixel, HELD_OUT))
-    sol = lt.solve(ne, cube, "wavelet")
+    sol = bases.solve(ne, cube, "wavelet")
     relit = render(data, sol.light, WHITE)
     assert float(np.sqrt(np.mean((relit - photo) ** 2) / np.mean(photo**2))) < 0.03
 
@@ -135,9 +139,9 @@ def test_quadtree_reaches_the_wavelet_objective(problem, name):
     the two `auto` solves end at the same relit error."""
     p = problem(name)
     wavelet = p.solve("wavelet")
-    both = lt.combine(p.ne.fit, p.ne.held_out)
+    both = p.ne.fit.combine(p.ne.held_out)
     P = haar.leaf_matrix(wavelet.tree)
-    x, info = lt.solve_nonnegative(lt.project(both, P))
+    x, info = lt.solve_nonnegative(both.project(P))
     assert info["kkt_residual"] <= 1e-6
     quad_light = np.asarray(P @ x)
     residual_wavelet = both.residual(wavelet.light).sum()

@@ -76,7 +76,7 @@ def convert_mesh(src: Path, dst: Path, comment: str) -> dict:
     """OBJ -> PLY with the raw arrays trimesh reads (load_mesh's own cleaning then runs on both)."""
     import trimesh
 
-    from pipelines import scene as sc
+    from pipelines.io import scene_files as sc
 
     # Without force="mesh" a one-object OBJ comes back as that object with its `vn` normals.
     raw = trimesh.load(str(src), process=False)
@@ -103,10 +103,14 @@ def convert_mesh(src: Path, dst: Path, comment: str) -> dict:
 
 def rendered_rel_rmse(scene_dir: Path, mesh_path: Path, resolution: int = 32) -> float:
     """Relative RMSE of our forward model against truth/image_clean.exr over the used pixels."""
-    from pipelines import camera as cam
-    from pipelines import cubemap, images, raycast, render
-    from pipelines import scene as sc
-    from pipelines import visibility as vis
+    from pipelines.geometry import camera as cam
+    from pipelines.light import cubemap
+    from pipelines.io import images
+    from pipelines.geometry import raycast
+    from pipelines.model import render
+    from pipelines.model import materials
+    from pipelines.io import scene_files as sc
+    from pipelines.geometry import visibility as vis
 
     C = sc.read_camera(scene_dir / "camera.json")
     P = sc.read_pose(scene_dir / "pose.json")
@@ -116,7 +120,7 @@ def rendered_rel_rmse(scene_dir: Path, mesh_path: Path, resolution: int = 32) ->
     cube = cubemap.CubeMap(resolution)
     V = vis.compute_visibility(be, S, cube)
     L = cubemap.latlong_to_cube(images.read_latlong(scene_dir / "truth/env_latlong.exr"), cube)
-    mat = render.Material.from_json(json.loads((scene_dir / "truth/material.json").read_text()))
+    mat = materials.Material.from_json(json.loads((scene_dir / "truth/material.json").read_text()))
     img = render.render(V, L, mat)
     ref = images.read_image(scene_dir / "truth/image_clean.exr").pixels[S.pixel[:, 0], S.pixel[:, 1]]
     return float(np.sqrt(np.mean((img - ref) ** 2)) / np.sqrt(np.mean(ref.astype(np.float64) ** 2)))

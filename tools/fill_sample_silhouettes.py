@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines import images
+from pipelines.io import images
 
 
 def main():

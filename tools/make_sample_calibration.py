@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines import calibration as cal
-from pipelines import images
+from pipelines.geometry import calibration as cal
+from pipelines.io import images
 
 PATTERN = cal.Target("acircles", 4, 11, 0.010)
 N_VIEWS = 15

@@ -16,8 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines import camera as cam
-from pipelines import cubemap, images, raycast, render, scene, visibility
+from pipelines.geometry import camera as cam
+from pipelines.light import cubemap
+from pipelines.io import images
+from pipelines.geometry import raycast
+from pipelines.model import render
+from pipelines.model import materials
+from pipelines.io import scene_files as scene
+from pipelines.geometry import visibility
 
 CAMERA = {"width": 192, "height": 144, "fx": 215.0, "fy": 215.0, "cx": 95.3, "cy": 72.6,
           "dist": [-0.09, 0.03, 0.0004, -0.0003, 0.0]}
@@ -120,7 +126,7 @@ def main():
     env = light_from_hdr(args.envmap)
     images.write_exr(out / "truth" / "env_latlong.exr", env)
     images.write_png(out / "truth" / "env_latlong.png", env)
-    material = render.Material.from_json(MATERIAL)
+    material = materials.Material.from_json(MATERIAL)
     values = render.render(vis, cubemap.latlong_to_cube(env, cube), material)
     clean = render.pixels_to_image(values, samples.pixel, camera.height, camera.width)
     sigma = NOISE_REL * float(values.mean())

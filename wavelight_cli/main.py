@@ -17,8 +17,8 @@ import click
 
 from pipelines.errors import InputError
 
-from . import stages
-from .scenefiles import scene_folder
+from .console import Console
+from .scene import material_from_options, scene_folder
 
 VIS_SECTION = "visibility"  # scene.toml section shared by every command that needs visibility
 
@@ -149,7 +149,7 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
 @click.pass_context
 def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
     """Recover the light (and reflectance) of a scene from one calibrated photo of a known mesh."""
-    ctx.obj = {"scene": scene_dir, "console": stages.Console(quiet), "lock_wait": lock_wait}
+    ctx.obj = {"scene": scene_dir, "console": Console(quiet), "lock_wait": lock_wait}
     if ctx.invoked_subcommand is not None and scene_dir.is_dir():
         try:
             ctx.default_map = _load_scene_toml(ctx, scene_dir)
@@ -175,6 +175,10 @@ def visibility_options(f):
                      help="Pixels to drop around silhouettes and depth jumps (mixed pixels)."),
         click.option("--ray-backend", "backend", default="embree", show_default=True,
                      type=click.Choice(["embree", "reference"]), help="Ray caster (reference is slow, for tests)."),
+        click.option("--visibility", "visibility_method", default="adaptive", show_default=True,
+                     type=click.Choice(["adaptive", "exact"]),
+                     help="adaptive: cast shadow rays where the image shows the shadows change and infer the rest "
+                          "from neighbouring pixels (the check's error rate is reported); exact: every ray."),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -182,9 +186,11 @@ def visibility_options(f):
     return f
 
 
-def _vis_opts(kw) -> stages.VisibilityOptions:
-    return stages.VisibilityOptions(kw.pop("resolution"), kw.pop("hemisphere"), kw.pop("supersample"),
-                                    kw.pop("edge_margin"), kw.pop("backend"))
+def _vis_opts(kw):
+    from pipelines.controllers.visibility import VisibilityOptions
+
+    return VisibilityOptions(kw.pop("resolution"), kw.pop("hemisphere"), kw.pop("supersample"), kw.pop("edge_margin"),
+                             kw.pop("backend"), kw.pop("visibility_method"))
 
 
 def _command(name, **kwargs):
@@ -222,7 +228,9 @@ def _command(name, **kwargs):
 def calibrate_cmd(obj, images, pattern, pattern_size, spacing, marker_size, dictionary, fix_k3, zero_tangent,
                   fix_aspect, outlier_factor, force):
     """Camera intrinsics and lens distortion from photos of a target -> camera.json, out/calibrate/*_overlay.png."""
-    from .calibrate import CalibrateOptions, calibrate_stage
+    from pipelines.controllers.calibrate import CalibrateOptions
+
+    from .stages.calibrate import calibrate_stage
 
     scene = scene_folder(obj["scene"])
     opts = CalibrateOptions(images, pattern, pattern_size, spacing, marker_size, dictionary, fix_k3, zero_tangent,
@@ -251,7 +259,9 @@ def calibrate_cmd(obj, images, pattern, pattern_size, spacing, marker_size, dict
 def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine, force):
     """The mesh's pose from 2D-3D correspondences (correspondences.csv + camera.json) -> pose.json,
     out/register_overlay.png."""
-    from .register import RegisterOptions, register_stage
+    from pipelines.controllers.register import RegisterOptions
+
+    from .stages.register import register_stage
 
     scene = scene_folder(obj["scene"])
     opts = RegisterOptions(method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine)
@@ -264,8 +274,10 @@ def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_dista
 @click.pass_obj
 def visibility_cmd(obj, force, **kw):
     """Ray-cast the shadow of every light direction at every used pixel (cached, resumable)."""
+    from .stages.visibility import visibility_stage
+
     scene = scene_folder(obj["scene"])
-    stages.visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
+    visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
 
 
 def material_options(f):
@@ -289,8 +301,8 @@ def material_options(f):
 
 
 def _material(kw, given: set | None = None):
-    return stages.material_from_options(kw.pop("material_file"), kw.pop("model"), kw.pop("kd"), kw.pop("ks"),
-                                        kw.pop("shininess"), given)
+    return material_from_options(kw.pop("material_file"), kw.pop("model"), kw.pop("kd"), kw.pop("ks"),
+                                 kw.pop("shininess"), given)
 
 
 def _material_or_fitted(kw, scene):
@@ -300,7 +312,7 @@ def _material_or_fitted(kw, scene):
     material = _material(kw, given)
     fitted = scene.out / "reflectance.json"
     if not given and fitted.is_file():
-        return stages.material_from_options(fitted, None, None, None, None), fitted
+        return material_from_options(fitted, None, None, None, None), fitted
     return material, None
 
 
@@ -314,9 +326,11 @@ def _material_or_fitted(kw, scene):
 @click.pass_obj
 def render_cmd(obj, light, exposure, force, **kw):
     """Render the input view under a given light and material -> out/render.exr, out/render.png."""
+    from .stages.render import render_stage
+
     scene = scene_folder(obj["scene"])
     material = _material(kw)
-    stages.render_stage(scene, _vis_opts(kw), light, material, exposure, obj["console"], force, obj["lock_wait"])
+    render_stage(scene, _vis_opts(kw), light, material, exposure, obj["console"], force, obj["lock_wait"])
 
 
 def solve_options(f):
@@ -336,6 +350,9 @@ def solve_options(f):
                      help="--levels auto: a level must lower the held-out error by this fraction to be kept."),
         click.option("--linear-input", is_flag=True,
                      help="The photo's 8/16-bit values are linear, not sRGB."),
+        click.option("--exact", is_flag=True,
+                     help="The reference route: every shadow ray (--visibility exact) and dense normal equations "
+                          "over every used pixel, instead of a weighted sample of them (slow; for checking)."),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -343,10 +360,12 @@ def solve_options(f):
 
 
 def _solve_opts(kw, basis="wavelet", sh_nonnegative=False):
-    from .solve import SolveOptions
+    from pipelines.controllers.solve import SolveOptions
+    from pipelines.light.bases import LightOptions
 
-    return SolveOptions(basis, str(kw.pop("levels")), kw.pop("face_resolution"), kw.pop("sh_order"), sh_nonnegative,
-                        kw.pop("held_out"), kw.pop("min_gain"), kw.pop("linear_input"))
+    light = LightOptions(basis, str(kw.pop("levels")), kw.pop("min_gain"), kw.pop("face_resolution"), kw.pop("sh_order"),
+                         sh_nonnegative)
+    return SolveOptions(light, kw.pop("held_out"), kw.pop("linear_input"), kw.pop("exact"))
 
 
 def reflectance_options(f):
@@ -386,14 +405,16 @@ def reflectance_options(f):
 def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
     reflectance.json, solve_report.json, ..."""
-    from . import solve
+    from pipelines.controllers.solve import ReflectanceOptions
+
+    from .stages import solve
 
     scene = scene_folder(obj["scene"])
     given: set = set()
     material = _material(kw, given)
     if reflectance is None:
         reflectance = "given" if given & {"file", "model"} else "auto"
-    refl = solve.ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
+    refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
     opts = _solve_opts(kw, basis, sh_nonnegative)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
                       refl, given)
@@ -409,12 +430,14 @@ def compare_cmd(obj, force, **kw):
     """Solve with every basis on this scene -> out/compare.md (table), compare.json, compare.png (speed vs error).
 
     The material is the reflectance fitted by `solve` (out/reflectance.json) unless material options are given."""
-    from . import solve
+    from pipelines.controllers.solve import material_text
+
+    from .stages import solve
 
     scene = scene_folder(obj["scene"])
     material, fitted = _material_or_fitted(kw, scene)
     if fitted is not None:
-        obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {solve.material_text(material)}")
+        obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {material_text(material)}")
     opts = _solve_opts(kw)
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 
@@ -447,14 +470,16 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
     photo's view or another one, with the fitted reflectance -> out/NAME.exr/png and its error."""
     from click.core import ParameterSource
 
-    from .relight import RelightOptions, relight_stage
+    from .stages.relight import RelightOptions, relight_stage
 
     obj = ctx.obj
     scene = scene_folder(obj["scene"])
     material, material_path = _material_or_fitted(kw, scene)
     solved = scene.out / "coefficients.h5"
     if light is None and ctx.get_parameter_source("resolution") != ParameterSource.COMMANDLINE and solved.is_file():
-        kw["resolution"] = stages.solved_resolution(solved)
+        from .scene import solved_light
+
+        kw["resolution"] = solved_light(scene)[1].resolution
     opts = RelightOptions(light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, exposure,
                           name)
     relight_stage(scene, _vis_opts(kw), opts, material, material_path, obj["console"], force, obj["lock_wait"])
@@ -487,7 +512,7 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
 def insert_cmd(obj, **kw):
     """Put a virtual object into the photo: shaded by the recovered light with its own shadows, its
     shadow on the known geometry added by differential rendering -> out/NAME.exr/png."""
-    from .insert import InsertOptions, insert_stage
+    from .stages.insert import InsertOptions, insert_stage
 
     scene = scene_folder(obj["scene"])
     material, material_path = _material_or_fitted(kw, scene)
@@ -511,7 +536,7 @@ def insert_cmd(obj, **kw):
 @click.pass_obj
 def export_cmd(obj, formats, light, height, face_size, force):
     """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (see README: Exports)."""
-    from .export import FORMATS, export_stage
+    from .stages.export import FORMATS, export_stage
 
     scene = scene_folder(obj["scene"])
     chosen = FORMATS if "all" in formats else tuple(f for f in FORMATS if f in formats)
@@ -523,7 +548,7 @@ def export_cmd(obj, formats, light, height, face_size, force):
 def report_cmd(obj):
     """out/report.md with figures (out/report/*.png) from the results on disk: input, relit, residual,
     light, observability; the refinement level by level; reflectance; bases; relighting."""
-    from .report import report_stage
+    from .stages.report import report_stage
 
     report_stage(scene_folder(obj["scene"]), obj["console"])
 
@@ -533,8 +558,10 @@ def report_cmd(obj):
 @click.pass_obj
 def check_cmd(obj, **kw):
     """Validate the scene folder's files (nothing is written); one line per file."""
+    from .stages.check import check_scene
+
     scene = scene_folder(obj["scene"])
-    for line in stages.check_scene(scene, _vis_opts(kw)):
+    for line in check_scene(scene, _vis_opts(kw)):
         click.echo(line)
     click.echo(f"{scene.root}: ok")
 
@@ -544,15 +571,11 @@ def check_cmd(obj, **kw):
 @click.pass_obj
 def status_cmd(obj, as_json):
     """Show each cached stage: fresh or stale, and why."""
-    from . import calibrate, export, insert, register, relight, solve
     from .cache import SceneCache
+    from .stages import versions
 
-    versions = {"calibrate": calibrate.CALIBRATE_VERSION, "register": register.REGISTER_VERSION,
-                "visibility": stages.VISIBILITY_VERSION, "render": stages.RENDER_VERSION,
-                "solve": solve.SOLVE_VERSION, "compare": solve.COMPARE_VERSION, "relight": relight.RELIGHT_VERSION,
-                "insert": insert.INSERT_VERSION, "export": export.EXPORT_VERSION}
     scene = scene_folder(obj["scene"])
-    rows = SceneCache(scene.root).status(versions)
+    rows = SceneCache(scene.root).status(versions())
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return

@@ -1,0 +1,22 @@
+"""Rendering a view under a light with the one forward model (`model.render`), for the stages that
+render (render, relight): where the visibility was inferred (adaptive), the directions that carry
+much of this light are cast exactly for every pixel first (`controllers.solve.bright_texels`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def render_view(vis, light: np.ndarray, material, backend=None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) radiance of every used pixel under a texel light, and the texels cast again."""
+    from ..geometry.visibility import VisibilityData, recast_columns
+    from ..model.render import render
+    from .solve import bright_texels
+
+    recast = np.zeros(0, np.int64)
+    if vis.method == "adaptive" and backend is not None:
+        recast = bright_texels(light, vis.cube)
+        if len(recast):
+            stored = recast_columns(backend, vis.samples, vis.cube, np.asarray(vis.stored), recast, vis.supersample)
+            vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method)
+    return render(vis, light, material), recast

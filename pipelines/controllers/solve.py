@@ -1,0 +1,356 @@
+"""The solve stage: photo + visibility -> the light, the reflectance, the relit view and what the
+photo cannot tell.
+
+Two routes share everything but the system the bases solve (`SolveOptions.exact`):
+- the default: the transport rows of a weighted sample of the pixels (`light.sampling`,
+  `light.rows`), the refinement levels chosen on a smaller head of it, the chosen model re-solved
+  on the whole sample and the held-out pixels; directions that carry much of the recovered light
+  are then cast exactly for every pixel when the visibility was inferred (`AdaptiveVisibility`),
+  and the light re-solved on that;
+- `exact`: dense normal equations over every used pixel (the reference the tests and the
+  benchmark compare with).
+The relit view is rendered for every used pixel by the one forward model (`model.render`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..metrics import versus_photo
+from ..light.bases import REFINED, LightOptions
+from ..model.materials import SPECULAR_MODELS, Material
+
+REFLECTANCE_MODES = ("auto", "lambert", "blinn-phong", "phong", "phong-classic", "given")
+DEFAULT_START_KS = 0.25  # start of a specular fit: ks = 0.25 x mean(kd), unless --ks is given
+DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
+EXPLORE_ROWS = 8192  # refinement levels are chosen on this many of the fit sample's rows
+PROBE_ROWS = 4096  # --reflectance auto probes a specular term on this many fit rows (and half as many held out)
+BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
+MAX_BRIGHT = 64
+SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
+              "the albedo (README: Conventions)")
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    light: LightOptions = LightOptions()
+    held_out: float = 0.1
+    linear_input: bool = False
+    exact: bool = False  # dense normal equations over every used pixel (the reference route)
+
+    def check(self, resolution: int, hemisphere: bool = True) -> None:
+        self.light.check(resolution, hemisphere)
+        if not 0 <= self.held_out <= 0.5:
+            raise InputError(f"--held-out must be a fraction from 0 to 0.5, got {self.held_out}", None,
+                             "use e.g. --held-out 0.1")
+        if self.light.levels == "auto" and self.held_out == 0 and self.light.basis in REFINED:
+            raise InputError("--levels auto needs held-out pixels, but --held-out is 0", None,
+                             "use --held-out 0.1, or give a fixed --levels N")
+
+    def cache_params(self) -> dict:
+        return {**self.light.cache_params(), "held_out": self.held_out, "linear_input": self.linear_input,
+                "exact": self.exact}
+
+
+@dataclass(frozen=True)
+class ReflectanceOptions:
+    """What `solve` does about the reflectance: fit it (a model or auto) or take it as given."""
+
+    mode: str = "auto"
+    max_rounds: int = 8
+    min_specular_gain: float = 0.05
+
+    def check(self) -> None:
+        if self.mode not in REFLECTANCE_MODES:
+            raise InputError(f"unknown --reflectance {self.mode!r}", None, f"use one of {', '.join(REFLECTANCE_MODES)}")
+        if not 1 <= self.max_rounds <= 100:
+            raise InputError(f"--max-rounds must be 1..100, got {self.max_rounds}", None, "use e.g. --max-rounds 8")
+        if not 0 <= self.min_specular_gain < 1:
+            raise InputError(f"--min-specular-gain must be in [0, 1), got {self.min_specular_gain}", None,
+                             "use e.g. --min-specular-gain 0.05")
+
+    @property
+    def fits(self) -> bool:
+        return self.mode not in ("lambert", "given")
+
+    def cache_params(self) -> dict:
+        p = asdict(self)
+        if not self.fits:
+            p.pop("max_rounds"), p.pop("min_specular_gain")
+        if self.mode != "auto":
+            p.pop("min_specular_gain", None)
+        return p
+
+    def start(self, material: Material, given: set) -> Material:
+        """The fit's start: the given material's kd; its ks and n if the user gave them, else
+        ks = DEFAULT_START_KS x mean(kd) and n = DEFAULT_START_SHININESS; the model of --reflectance
+        (auto: the given specular model, else blinn-phong)."""
+        model = self.mode if self.mode in SPECULAR_MODELS else (
+            material.model if material.model in SPECULAR_MODELS else "blinn-phong")
+        ks = material.ks if "ks" in given and any(material.ks) else (DEFAULT_START_KS * float(np.mean(material.kd)),) * 3
+        if "n" in given and not material.shininess > 0:
+            raise InputError(f"--shininess must be > 0 to start a fit, got {material.shininess:g}", None,
+                             f"use e.g. --shininess {DEFAULT_START_SHININESS:g}, or leave it out")
+        n = material.shininess if "n" in given else DEFAULT_START_SHININESS
+        return replace(material, model=model, ks=tuple(ks), shininess=float(n))
+
+
+class Progress:
+    """What a controller tells its caller while it works (the CLI prints it). Silent by default."""
+
+    def note(self, message: str) -> None:
+        pass
+
+    def advance(self, what: str, done: int, total: int, unit: str = "") -> None:
+        pass
+
+
+def material_text(m: Material) -> str:
+    kd = " ".join(f"{v:.3g}" for v in m.kd)
+    if not m.specular:
+        return f"{m.model} kd {kd}"
+    return f"{m.model} kd {kd}, ks {float(np.mean(m.ks)):.3g}, n {m.shininess:.3g}"
+
+
+# -- the systems ----------------------------------------------------------------------------------
+class _Systems:
+    """Builds the light system of a material on the chosen route (dense, or sampled rows)."""
+
+    def __init__(self, vis, values, usable, held, options: SolveOptions, progress: Progress):
+        from ..light import sampling
+
+        self.vis, self.values, self.usable, self.held = vis, values, usable, held
+        self.options, self.progress = options, progress
+        self.sample_info = None
+        if options.exact:
+            return
+        from ..light.rows import TransportRows
+
+        pixels = vis.samples.pixel
+        change = sampling.visibility_change(pixels, np.asarray(vis.stored), vis.encoding)
+        self.fit_sample = sampling.fit_sample(pixels, usable & ~held, change)
+        self.held_sample = sampling.held_out_sample(pixels, usable & held)
+        self.fit_rows = TransportRows(vis, self.fit_sample.rows)
+        self.held_rows = TransportRows(vis, self.held_sample.rows)
+        self.sample_info = {"fit": self.fit_sample.summary(), "held_out": self.held_sample.summary(),
+                            "explore_rows": min(EXPLORE_ROWS, len(self.fit_sample.rows))}
+
+    def system(self, material: Material):
+        from ..light.system import LightSystem, build_normal_equations
+
+        if self.options.exact:
+            n_sat = int((~self.usable).sum())
+            self.progress.note(f"normal equations over {len(self.values)} pixels x {self.vis.cube.n_texels} texels"
+                               + (f" ({n_sat} saturated pixels left out)" if n_sat else ""))
+            ne = build_normal_equations(self.vis, self.values, material, use=self.usable, held_out=self.held,
+                                        progress=lambda done, total: self.progress.advance("normal equations", done,
+                                                                                           total, "pixels"))
+            self.progress.note(f"normal equations in {ne.seconds:.1f} s")
+            return ne
+        t0 = time.perf_counter()
+        fs, hs = self.fit_sample, self.held_sample
+        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates)
+        held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates)
+        return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
+
+    def recast(self, backend, texels: np.ndarray):
+        """Cast the visibility toward `texels` for every pixel; later systems use it."""
+        from ..geometry.visibility import VisibilityData, recast_columns
+        from ..light.rows import TransportRows
+
+        v = self.vis
+        stored = recast_columns(backend, v.samples, v.cube, np.asarray(v.stored), texels, v.supersample)
+        self.vis = VisibilityData(v.samples, v.cube, v.supersample, stored)
+        if not self.options.exact:
+            self.fit_rows = TransportRows(self.vis, self.fit_sample.rows)
+            self.held_rows = TransportRows(self.vis, self.held_sample.rows)
+
+
+def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
+    """The texels that carry so much of the light that a wrong visibility bit toward them shows: by
+    decreasing power share s_i (radiance x solid angle), until the rest's sum of s_i^2 is below
+    `share_sq` (an overcast sky: none; a sun: its few texels)."""
+    power = np.maximum(np.asarray(light, np.float64), 0).sum(axis=1) * cube.solid_angles
+    total = power.sum()
+    if total <= 0:
+        return np.zeros(0, np.int64)
+    share = power / total
+    order = np.argsort(-share, kind="stable")
+    rest = np.cumsum((share[order] ** 2)[::-1])[::-1]  # rest[k]: sum of s^2 from the k-th brightest on
+    k = int(np.searchsorted(-rest, -share_sq))  # the first k with rest[k] <= share_sq
+    return np.sort(order[:min(k, most)])
+
+
+# -- results --------------------------------------------------------------------------------------
+@dataclass
+class SolveResult:
+    material: Material
+    solution: object  # light.solution.LightSolution
+    reflectance: object  # model.reflectance.Reflectance
+    system: object  # the LightSystem the final light was solved on
+    vis: object  # the visibility the relit view was rendered with (bright directions exact)
+    relit: np.ndarray  # (P, 3) every used pixel under the light
+    versus: dict  # relit against the photo
+    observability: np.ndarray
+    unobservable: np.ndarray
+    warnings: list
+    report: dict = field(default_factory=dict)
+
+
+def _brightest(solution, cube) -> dict:
+    from ..light.cubemap import direction_to_spherical
+
+    lum = solution.light @ np.array([0.2126, 0.7152, 0.0722])
+    i = int(np.argmax(lum))
+    theta, phi = direction_to_spherical(cube.directions[i:i + 1])
+    return {"texel": i, "direction": cube.directions[i].tolist(), "theta_deg": float(np.degrees(theta[0])),
+            "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": solution.light[i].tolist()}
+
+
+# -- the controller -----------------------------------------------------------------------------
+def prepare_photo(vis, photo, options: SolveOptions, photo_path=None):
+    """The photo at the used pixels: (values (P, 3), usable (not saturated), held out), with the
+    checks that the photo holds something to fit."""
+    from ..light.system import holdout_mask
+
+    rows, cols = vis.samples.pixel[:, 0], vis.samples.pixel[:, 1]
+    values = photo.pixels[rows, cols].astype(np.float64)
+    saturated = photo.saturated[rows, cols]
+    if saturated.all():
+        raise InputError("every used pixel is saturated (clipped)", photo_path,
+                         "use a darker exposure or an HDR (EXR) photo")
+    if not np.any(values[~saturated] > 0):
+        raise InputError(f"the photo is black over all {len(values)} used pixels: there is no light to recover",
+                         photo_path, "check the exposure, the lens cap, the mask and that this is the right photo")
+    held = holdout_mask(vis.samples.pixel, options.held_out) if options.held_out > 0 else np.zeros(len(values), bool)
+    return values, ~saturated, held
+
+
+def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectance: ReflectanceOptions,
+                given: set | None = None, backend=None, photo_path=None, progress: Progress | None = None,
+                adaptive: bool = False) -> SolveResult:
+    """Recover the light and the reflectance from a photo.
+
+    vis : the used pixels' visibility (`geometry.visibility.VisibilityData`); `adaptive`: it was
+        inferred where neighbours agree (the bright directions are then cast again with `backend`).
+    photo : `io.images.LoadedImage` of the camera's size; photo_path names it in error messages.
+    material : the given material (its kd sets the light's scale; a fit starts from it).
+    """
+    from ..light import bases
+    from ..light import solution as ls
+    from ..model import reflectance as rf
+    from ..model.render import render
+
+    progress = progress or Progress()
+    given = given or set()
+    reflectance.check()
+    if reflectance.fits:
+        reflectance.start(material, given)
+    t0 = time.monotonic()
+    values, usable, held = prepare_photo(vis, photo, options, photo_path)
+    saturated = ~usable
+    systems = _Systems(vis, values, usable, held, options, progress)
+    light_options = options.light
+
+    def on_level(rec):
+        h = "" if rec.held_out_rmse is None else f", held-out {100 * rec.held_out_rmse:.3f} %"
+        progress.note(f"{light_options.basis} level {rec.index}: {rec.n_coefficients} coefficients, "
+                      f"fit {100 * rec.fit_rmse:.3f} %{h}")
+
+    def solve_light(m: Material):
+        ne = systems.system(m)
+        o = light_options
+        sol = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
+                          o.sh_nonnegative, on_level)
+        return sol, ne
+
+    def on_round(r):
+        h = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
+        lm = "" if r.fit is None else f" (LM: {r.fit.evaluations} evaluations, {r.fit.seconds:.1f} s)"
+        progress.note(f"reflectance round {r.index}: {material_text(r.material)}{lm}: error {100 * r.fit_rmse:.3f} %{h}")
+
+    lm_rows = probe_rows = None
+    if not options.exact:  # the LM fits the same pixels the light is fitted to; the probe a head of them
+        fs, hs = systems.fit_sample, systems.held_sample
+        lm_rows = (np.concatenate([fs.rows, hs.rows]), np.concatenate([fs.weights, hs.weights]))
+        nf, nh = min(PROBE_ROWS, len(fs.rows)), min(PROBE_ROWS // 2, len(hs.rows))
+        probe_rows = (np.concatenate([fs.rows[:nf], hs.rows[:nh]]),
+                      np.concatenate([fs.weights[:nf] * fs.weights.sum() / max(fs.weights[:nf].sum(), 1e-300),
+                                      hs.weights[:nh] * hs.weights.sum() / max(hs.weights[:nh].sum(), 1e-300)]))
+    try:
+        if reflectance.mode == "given":
+            result = rf.fixed(material, solve_light, "given", "given by the user (--material/--model/--kd/--ks/"
+                              "--shininess): not fitted", on_round)
+        elif reflectance.mode == "lambert":
+            result = rf.fixed(Material(kd=material.kd), solve_light, "lambert", "lambert: chosen by --reflectance",
+                              on_round)
+        else:
+            start = reflectance.start(material, given)
+            progress.note(f"reflectance {reflectance.mode}: start {material_text(start)}")
+            if reflectance.mode == "auto":
+                result = rf.select(vis, values, start, solve_light, usable, held, material.kd,
+                                   reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
+                                   rows=lm_rows, probe_rows=probe_rows)
+            else:
+                result = rf.alternate(vis, values, start, solve_light, usable, held, material.kd,
+                                      reflectance.max_rounds, progress=on_round, rows=lm_rows)
+    except rf.FitError as exc:
+        raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
+                         "use --reflectance lambert, or check the photo and the pose") from None
+    material, sol, system = result.material, result.solution, result.context
+    recast = np.zeros(0, np.int64)
+    if adaptive and backend is not None:
+        recast = bright_texels(sol.light, vis.cube)
+        if len(recast):
+            progress.note(f"casting the {len(recast)} brightest light directions exactly for every pixel")
+            systems.recast(backend, recast)
+            system = systems.system(material)
+            again = bases.refit(system, vis.cube, sol)
+            if again is None:
+                o = light_options
+                again = bases.solve(system, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
+                                    o.sh_order, o.sh_nonnegative)
+            sol = again
+    observability, unobservable = ls.observability(system)
+    relit = render(systems.vis, sol.light, material)
+    versus = versus_photo(relit, values, usable)
+    warnings = ls.diagnose(system, sol, vis.cube, versus["relative_rmse_vs_photo"])
+    n_range = rf.SHININESS_RANGE
+    if material.specular and not n_range[0] * 1.001 < material.shininess < n_range[1] * 0.999:
+        warnings.append(f"the shininess n = {material.shininess:g} is at the end of its range {n_range}: "
+                        "the highlight is not resolved (try a larger R, or --reflectance lambert)")
+    n_unobs = int(unobservable.sum())
+    if n_unobs:
+        progress.note(f"{n_unobs} of {vis.cube.n_texels} light directions are unobservable (no used pixel sees "
+                      "them): they stay at zero, drawn magenta")
+    if sol.details.get("min_radiance", 0.0) < 0:
+        progress.note(f"warning: the {sol.basis} light goes negative (min {sol.details['min_radiance']:.4g}, "
+                      f"{100 * sol.details['negative_fraction']:.0f} % of the texels): it is kept as solved; "
+                      "tools that clip it get a different light (use --sh-nonnegative for a physical one)")
+    n = len(observability)
+    report = {
+        "basis": sol.basis,
+        "route": "exact" if options.exact else "sampled",
+        "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
+        "pixels": {"used": int(len(values)), "saturated_excluded": int(saturated.sum()),
+                   "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
+        "sample": systems.sample_info,
+        "exact_directions": {"texels": recast.tolist(),
+                             "note": "directions that carry much of the light, cast for every pixel"},
+        "normal_equations_seconds": getattr(system, "seconds", 0.0),
+        "observability": {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
+                          "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum()),
+                          "note": "observability = sqrt(G_ii / max G_ii): how strongly the used pixels respond to a "
+                                  "texel's radiance; unobservable texels (0) get no light"},
+        "relit": versus,
+        "warnings": warnings,
+        "brightest_direction": _brightest(sol, vis.cube),
+        "solution": sol.summary(),
+        "seconds": time.monotonic() - t0,
+    }
+    return SolveResult(material, sol, result, system, systems.vis, relit, versus, observability, unobservable,
+                       warnings, report)

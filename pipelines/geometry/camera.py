@@ -1,0 +1,206 @@
+"""Camera rays (OpenCV model) and the per-pixel surface samples the solver fits.
+
+A *used pixel* is a pixel whose centre ray hits the mesh, that the optional mask keeps, and that is
+not within `edge_margin` pixels of a silhouette or depth discontinuity (mixed pixels there blend
+two surfaces, which no per-pixel model can fit).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .mesh import Mesh
+
+
+@dataclass(frozen=True)
+class Camera:
+    """OpenCV pinhole camera with distortion (k1, k2, p1, p2, k3); pixel (0, 0)'s centre at (0, 0)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    def to_json(self) -> dict:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "dist": list(self.dist), **self.extra}
+
+
+@dataclass(frozen=True)
+class Pose:
+    """World -> camera transform x_cam = R X + t."""
+
+    R: np.ndarray
+    t: np.ndarray
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def camera_centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def to_json(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist(), **self.extra}
+
+
+def project(camera: Camera, pose: Pose, points: np.ndarray) -> np.ndarray:
+    """(n, 3) world points -> (n, 2) pixel coordinates (u, v) with distortion."""
+    import cv2
+
+    rvec, _ = cv2.Rodrigues(pose.R)
+    uv, _ = cv2.projectPoints(np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, pose.t,
+                              camera.K, camera.dist_coeffs)
+    return uv.reshape(-1, 2)
+
+
+def pixel_rays(camera: Camera, pose: Pose, rows: np.ndarray, cols: np.ndarray):
+    """World-space rays through pixel centres (u = col, v = row), undoing lens distortion.
+
+    Returns origins (n, 3) (all the camera centre) and unit directions (n, 3).
+    """
+    import cv2
+
+    uv = np.stack([cols, rows], axis=-1).astype(np.float64).reshape(-1, 1, 2)
+    if np.any(camera.dist_coeffs != 0):
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        xy = cv2.undistortPoints(uv, camera.K, camera.dist_coeffs, R=np.eye(3), P=np.eye(3),
+                                 criteria=criteria).reshape(-1, 2)
+    else:
+        xy = np.column_stack([(uv[:, 0, 0] - camera.cx) / camera.fx, (uv[:, 0, 1] - camera.cy) / camera.fy])
+    d_cam = np.column_stack([xy, np.ones(len(xy))])
+    d = d_cam @ pose.R  # R^T d for each row
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(pose.camera_centre, d.shape).copy()
+    return o, d
+
+
+@dataclass(frozen=True)
+class PixelSamples:
+    """Surface samples of the used pixels, in world coordinates.
+
+    pixel : (P, 2) int32 (row, col); position, normal (smooth shading), geometric_normal (facing
+    the camera), view (unit, towards the camera): (P, 3) float64; face : (P,) int64.
+    """
+
+    pixel: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    geometric_normal: np.ndarray
+    view: np.ndarray
+    face: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixel)
+
+
+def _edges(hit: np.ndarray, depth: np.ndarray, face_normal_dot: np.ndarray, tolerance: float) -> np.ndarray:
+    """Pixels next to a silhouette (hit/miss change) or a depth jump larger than expected for the
+    local surface slope (a surface seen at grazing angle changes depth fast without an edge)."""
+    edge = np.zeros_like(hit)
+    for axis in (0, 1):
+        h0 = np.take(hit, range(hit.shape[axis] - 1), axis=axis)
+        h1 = np.take(hit, range(1, hit.shape[axis]), axis=axis)
+        d0 = np.take(depth, range(depth.shape[axis] - 1), axis=axis)
+        d1 = np.take(depth, range(1, depth.shape[axis]), axis=axis)
+        c0 = np.take(face_normal_dot, range(depth.shape[axis] - 1), axis=axis)
+        c1 = np.take(face_normal_dot, range(1, depth.shape[axis]), axis=axis)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # depth step of a plane seen at cosine c across one pixel ~ depth * pixel_angle / c
+            allowed = tolerance * np.maximum(d0, d1) / np.maximum(np.minimum(c0, c1), 0.05)
+            jump = (h0 != h1) | (h0 & h1 & (np.abs(d1 - d0) > allowed))
+        sl0 = [slice(None)] * 2
+        sl1 = [slice(None)] * 2
+        sl0[axis] = slice(0, -1)
+        sl1[axis] = slice(1, None)
+        edge[tuple(sl0)] |= jump
+        edge[tuple(sl1)] |= jump
+    return edge
+
+
+def _cast(camera: Camera, pose: Pose, mesh: Mesh, backend):
+    """One ray per pixel centre: rows, cols, origins, directions, hit distance, face, barycentrics,
+    the (H, W) hit mask and the (H, W) silhouette / depth-jump edges."""
+    H, W = camera.height, camera.width
+    rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    rows, cols = rows.ravel(), cols.ravel()
+    o, d = pixel_rays(camera, pose, rows, cols)
+    t, face, bu, bv = backend.intersect(o, d)
+    hit = (face >= 0).reshape(H, W)
+    depth = np.where(hit.ravel(), t, np.inf).reshape(H, W)
+    ng = mesh.face_normals[np.where(face >= 0, face, 0)]
+    cos_view = np.abs(np.einsum("ij,ij->i", ng, -d)).reshape(H, W)
+    pixel_angle = 1.0 / max(camera.fx, camera.fy)
+    edge = _edges(hit, depth, cos_view, tolerance=4.0 * pixel_angle)
+    return rows, cols, o, d, t, face, bu, bv, hit, edge
+
+
+def mesh_outline(camera: Camera, pose: Pose, mesh: Mesh, backend) -> np.ndarray:
+    """(H, W) bool: pixels on the mesh's silhouette or on a depth jump, as the pose puts them
+    (for overlays that show how well the mesh sits on the photo)."""
+    return _cast(camera, pose, mesh, backend)[-1]
+
+
+def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndarray | None = None,
+                  edge_margin: int = 1, mask_path=None) -> tuple[PixelSamples, dict]:
+    """Cast one ray per pixel centre and keep the used pixels.
+
+    Returns the samples and diagnostics (pixel counts at each step).
+    """
+    from scipy import ndimage
+
+    H, W = camera.height, camera.width
+    if mask is not None and mask.shape != (H, W):
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, camera.json says {W}x{H}", mask_path,
+                         "use a mask of the photo's size")
+    z_cam = mesh.vertices @ pose.R[2] + pose.t[2]
+    if np.all(z_cam <= 0):
+        raise InputError("the pose puts the whole mesh behind the camera", None,
+                         "check pose.json (world->camera, x_cam = R X + t) or rerun wavelight register")
+    rows, cols, o, d, t, face, bu, bv, hit, edge = _cast(camera, pose, mesh, backend)
+    if not hit.any():
+        raise InputError("no pixel of the image sees the mesh", None,
+                         "check pose.json and camera.json (does the mesh project into the image?)")
+    fn = mesh.face_normals
+    if edge_margin > 0:
+        edge = ndimage.binary_dilation(edge, iterations=edge_margin)
+    used = hit & ~edge if edge_margin >= 0 else hit
+    diagnostics = {"pixels": H * W, "hit": int(hit.sum()), "after_edges": int(used.sum())}
+    if mask is not None:
+        used &= mask
+        diagnostics["mask"] = int(mask.sum())
+    diagnostics["used"] = int(used.sum())
+    if not used.any():
+        raise InputError("no usable pixel: the mask and the mesh's image do not overlap", mask_path,
+                         "check mask.png (white = use) and the pose")
+    sel = np.flatnonzero(used.ravel())
+    f = face[sel]
+    w1, w2 = bu[sel], bv[sel]
+    w0 = 1.0 - w1 - w2
+    tri = mesh.faces[f]
+    position = o[sel] + t[sel, None] * d[sel]
+    normal = (w0[:, None] * mesh.vertex_normals[tri[:, 0]] + w1[:, None] * mesh.vertex_normals[tri[:, 1]]
+              + w2[:, None] * mesh.vertex_normals[tri[:, 2]])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
+    view = -d[sel]
+    geo = fn[f]
+    geo[np.einsum("ij,ij->i", geo, view) < 0] *= -1  # orient towards the camera
+    # Surfaces seen from their back side (normals pointing away from the camera) reflect nothing
+    # under one-sided shading, as in physically based renderers; count them for the report.
+    diagnostics["back_facing"] = int(np.count_nonzero(np.einsum("ij,ij->i", normal, view) < 0))
+    samples = PixelSamples(pixel=np.column_stack([rows[sel], cols[sel]]).astype(np.int32), position=position,
+                           normal=normal, geometric_normal=geo, view=view, face=f)
+    return samples, diagnostics

@@ -1,0 +1,214 @@
+"""Scene files (DESIGN §2): camera.json, pose.json, correspondences.csv and the mesh.
+
+Readers validate everything a later stage relies on and raise `InputError` naming the file, the
+problem and the fix. They return plain frozen dataclasses of numpy arrays.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, require_file
+from ..geometry.camera import Camera, Pose
+from ..geometry.mesh import Mesh
+
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+
+
+def _load_json(path: Path, what: str) -> dict:
+    require_file(path, f"create the {what} file (see README: scene folder)")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path, "fix the syntax") from None
+    except OSError as exc:
+        raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
+    if not isinstance(data, dict):
+        raise InputError("expected a JSON object", path, "see README for the file format")
+    return data
+
+
+def _number(data: dict, key: str, path: Path, positive: bool = False) -> float:
+    if key not in data:
+        raise InputError(f"missing field '{key}'", path, "see README for the file format")
+    value = data[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"field '{key}' must be a number, got {value!r}", path, "fix the value")
+    try:
+        number = float(value)  # a JSON integer beyond float64 overflows
+    except OverflowError:
+        number = math.inf
+    if not math.isfinite(number) or (positive and number <= 0):
+        need = "a positive finite number" if positive else "finite"
+        shown = (value if math.isfinite(number) or not isinstance(value, int)
+                 else f"an integer of {len(str(value))} digits")
+        raise InputError(f"field '{key}' must be {need}, got {shown!r}", path, "fix the value")
+    return number
+
+
+def _array(data: dict, key: str, shape: tuple[int, ...], path: Path) -> np.ndarray:
+    if key not in data:
+        raise InputError(f"missing field '{key}'", path, "see README for the file format")
+    try:
+        arr = np.asarray(data[key], dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"field '{key}' must be numbers of shape {shape}", path, "fix the value") from None
+    if arr.shape != shape:
+        raise InputError(f"field '{key}' has shape {arr.shape}, expected {shape}", path, "fix the value")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"field '{key}' has non-finite values", path, "fix the value")
+    return arr
+
+
+def read_camera(path: str | Path) -> Camera:
+    path = Path(path)
+    data = _load_json(path, "camera.json")
+    width, height = _number(data, "width", path, True), _number(data, "height", path, True)
+    if width != int(width) or height != int(height):
+        raise InputError("width and height must be whole numbers of pixels", path, "fix the values")
+    dist = data.get("dist", [0.0] * 5)
+    dist_arr = _array({"dist": dist}, "dist", (len(dist),) if isinstance(dist, list) else (5,), path)
+    if dist_arr.size not in (4, 5, 8, 12, 14):
+        raise InputError(f"field 'dist' has {dist_arr.size} coefficients, expected 5 (k1, k2, p1, p2, k3)",
+                         path, "fix the value")
+    dist5 = np.zeros(5)
+    dist5[: min(5, dist_arr.size)] = dist_arr[:5]
+    known = {"width", "height", "fx", "fy", "cx", "cy", "dist"}
+    return Camera(int(width), int(height), _number(data, "fx", path, True), _number(data, "fy", path, True),
+                  _number(data, "cx", path), _number(data, "cy", path), tuple(float(x) for x in dist5),
+                  extra={k: v for k, v in data.items() if k not in known})
+
+
+def read_pose(path: str | Path) -> Pose:
+    path = Path(path)
+    data = _load_json(path, "pose.json")
+    R = _array(data, "R", (3, 3), path)
+    t = _array(data, "t", (3,), path)
+    ortho_err = np.abs(R @ R.T - np.eye(3)).max()
+    if ortho_err > 1e-4 or np.linalg.det(R) < 0:
+        problem = (f"R is not a rotation (|R Rt - I| = {ortho_err:.2g})" if ortho_err > 1e-4
+                   else "R is a reflection (det < 0)")
+        raise InputError(problem, path, "write an orthonormal R with det +1 (or rerun wavelight register)")
+    # Re-orthonormalise the small residue so that downstream geometry is exact.
+    u, _, vt = np.linalg.svd(R)
+    known = {"R", "t"}
+    return Pose(u @ vt, t, extra={k: v for k, v in data.items() if k not in known})
+
+
+def read_correspondences(path: str | Path, min_points: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Read `u,v,x,y,z` rows -> (uv (n, 2), xyz (n, 3)) float64."""
+    path = Path(path)
+    require_file(path, "create correspondences.csv with header u,v,x,y,z")
+    try:
+        rows = list(csv.reader(path.read_text().splitlines()))
+    except (UnicodeDecodeError, csv.Error) as exc:  # csv.Error: e.g. an unclosed quote swallowing the file
+        what = "not a text CSV file" if isinstance(exc, UnicodeDecodeError) else f"not valid CSV ({exc})"
+        raise InputError(what, path, "save it as plain CSV with header u,v,x,y,z") from None
+    except OSError as exc:
+        raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    header = [c.strip().lower() for c in rows[0]] if rows else []
+    if header != ["u", "v", "x", "y", "z"]:
+        raise InputError(f"header must be 'u,v,x,y,z', got {','.join(header) or 'nothing'!r}", path,
+                         "fix the first line")
+    values = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if len(row) != 5:
+            raise InputError(f"line {lineno} has {len(row)} cells, expected 5", path, "fix that line")
+        try:
+            vals = [float(c) for c in row]
+        except ValueError:
+            raise InputError(f"line {lineno} has a non-numeric cell", path, "fix that line") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(f"line {lineno} has a non-finite value", path, "fix that line")
+        values.append(vals)
+    arr = np.asarray(values, dtype=np.float64).reshape(-1, 5)
+    if len(np.unique(arr, axis=0)) != len(arr):
+        raise InputError("duplicate rows", path, "remove the repeated correspondences")
+    if len(arr) < min_points:
+        raise InputError(f"{len(arr)} correspondences, at least {min_points} are needed", path,
+                         "click more 2D-3D point pairs")
+    return arr[:, :2], arr[:, 2:]
+
+
+def find_mesh(scene_dir: Path) -> Path:
+    """The scene's mesh file: mesh.<ext> for the supported extensions."""
+    found = [scene_dir / f"mesh{ext}" for ext in MESH_SUFFIXES if (scene_dir / f"mesh{ext}").is_file()]
+    if not found:
+        raise InputError("no mesh file", scene_dir / "mesh.obj",
+                         f"put the geometry in the scene folder as mesh{{{','.join(MESH_SUFFIXES)}}}")
+    return found[0]
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Load a mesh with trimesh; a multi-part file (scene) becomes one mesh.
+
+    Vertex normals from the file are kept as shading normals (else area-weighted face normals).
+    Degenerate (zero-area) and duplicate faces are removed, and OBJ polygons split into triangles,
+    with a note each.
+    """
+    import trimesh
+
+    path = Path(path)
+    require_file(path, "check the mesh path")
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        # an ImportError here is trimesh reaching for an optional text-encoding detector on binary junk
+        msg = ("unrecognised content" if isinstance(exc, ImportError) or not str(exc)
+               else str(exc).splitlines()[0])
+        raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
+    # A scene (multi-part file) becomes one mesh; each part keeps the normals its file gives
+    # (trimesh's force="mesh" would drop them and recompute normals from the faces).
+    parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
+        [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
+    parts = [m for m in parts if len(m.faces)]
+    if not parts:
+        raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")
+    vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64) for m in parts])
+    offsets = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
+    faces = np.concatenate([np.asarray(m.faces, dtype=np.int64) + o for m, o in zip(parts, offsets)])
+    if not np.all(np.isfinite(vertices)):
+        raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
+                         f" of {len(vertices)}", path, "repair or re-export the mesh")
+    normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
+    notes = []
+    if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
+        with open(path, "rb") as f:
+            polygons = sum(1 for line in f if line.startswith(b"f ") and len(line.split()) > 4)
+        if polygons:
+            notes.append(f"split {polygons} polygons of more than 3 corners into triangles")
+    v = vertices[faces]
+    area2 = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    scale = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    degenerate = area2 <= (1e-12 * scale) ** 2
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    duplicate = np.ones(len(faces), dtype=bool)
+    duplicate[first] = False
+    drop = degenerate | duplicate
+    if drop.all():
+        raise InputError("every triangle of the mesh is degenerate", path, "repair the mesh")
+    if degenerate.any():
+        notes.append(f"removed {int(degenerate.sum())} zero-area faces")
+    if (duplicate & ~degenerate).any():
+        notes.append(f"removed {int((duplicate & ~degenerate).sum())} duplicate faces")
+    faces = faces[~drop]
+    bad_n = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
+    if bad_n.any():
+        normals = np.array(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
+        flat = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
+        if flat.any():  # faces around the vertex cancel (a sheet folded onto itself): take one face's normal
+            v = vertices[faces]
+            fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+            first = np.full(len(vertices), -1)
+            first[faces[::-1].ravel()] = np.repeat(np.arange(len(faces))[::-1], 3)
+            normals[flat] = np.where(first[flat, None] >= 0, fn[first[flat]], [0.0, 0.0, 1.0])
+    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
+    return Mesh(vertices, faces, normals, tuple(notes))

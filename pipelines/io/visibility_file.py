@@ -1,0 +1,73 @@
+"""The visibility cache file (`visibility.h5`): pixel samples, texel layout and the stored rows.
+
+Layout (all datasets chunked by pixel rows and compressed):
+  attrs: format, resolution, hemisphere, supersample, n_pixels, n_texels, encoding ('bits'|'fraction')
+  pixels/{pixel, position, normal, geometric_normal, view, face}
+  texels/{direction, solid_angle}
+  visibility: (P, ceil(N/8)) uint8 bit-packed (little bit order) or (P, N) uint8 fractions
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.camera import PixelSamples
+from ..geometry.visibility import VisibilityData
+from ..light.cubemap import CubeMap
+from .files import h5_file
+
+FORMAT = "wavelight-visibility-1"
+PIXEL_FIELDS = ("pixel", "position", "normal", "geometric_normal", "view", "face")
+
+
+def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, supersample: int,
+                     chunks: Iterator[np.ndarray], rows_per_chunk: int, attrs: dict | None = None) -> None:
+    """Write the file at `path` (atomically: `files.h5_file`) from stored-row chunks."""
+
+    n_tex = cube.n_texels
+    width = (n_tex + 7) // 8 if supersample == 1 else n_tex
+    with h5_file(path, track_order=True) as f:
+        f.attrs.update({"format": FORMAT, "resolution": cube.resolution, "hemisphere": cube.hemisphere,
+                        "supersample": supersample, "n_pixels": len(samples), "n_texels": n_tex,
+                        "encoding": "bits" if supersample == 1 else "fraction", **(attrs or {})})
+        for name in PIXEL_FIELDS:
+            arr = getattr(samples, name)
+            f.create_dataset(f"pixels/{name}", data=arr, compression="gzip", compression_opts=4, shuffle=True)
+        f.create_dataset("texels/direction", data=cube.directions)
+        f.create_dataset("texels/solid_angle", data=cube.solid_angles)
+        chunk_rows = max(1, min(len(samples), rows_per_chunk))
+        ds = f.create_dataset("visibility", shape=(len(samples), width), dtype=np.uint8,
+                              chunks=(chunk_rows, width), compression="gzip", compression_opts=4,
+                              shuffle=False)
+        a = 0
+        for block in chunks:
+            ds[a:a + len(block)] = block
+            a += len(block)
+        if a != len(samples):
+            raise RuntimeError(f"visibility chunks cover {a} of {len(samples)} pixels")
+
+
+def read_visibility(path: str | Path, in_memory: bool = True) -> VisibilityData:
+    """Open a visibility file; raises InputError if it is not one of ours or is damaged."""
+    import h5py
+
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+        if f.attrs.get("format") != FORMAT:
+            raise InputError(f"not a {FORMAT} file", path, "delete it; the next run rebuilds it")
+        samples = PixelSamples(**{name: f[f"pixels/{name}"][:] for name in PIXEL_FIELDS})
+        cube = CubeMap(int(f.attrs["resolution"]), bool(f.attrs["hemisphere"]))
+        if cube.n_texels != int(f.attrs["n_texels"]):
+            raise InputError("texel count does not match its layout", path, "delete it; the next run rebuilds it")
+        stored = f["visibility"][:] if in_memory else f["visibility"]
+        data = VisibilityData(samples, cube, int(f.attrs["supersample"]), stored, str(f.attrs.get("method", "exact")))
+        if in_memory:
+            f.close()
+        return data
+    except (OSError, KeyError) as exc:
+        raise InputError(f"damaged visibility cache ({exc})", path, "delete it; the next run rebuilds it") from None

@@ -1,0 +1,345 @@
+"""The light solve on transport rows: a weighted sample of the pixels instead of dense normal equations.
+
+The dense route (`system.build_normal_equations`) folds every pixel into G = T'T over all texels:
+50,000 pixels x 3,072^2 entries for a light that ends with a few hundred coefficients. Here the
+transport rows of a sample of pixels are kept, each row weighted by the number of pixels it
+stands for (`sampling`), and each basis' system is built in its own coefficients: for a Haar
+tree, the transport of a leaf is the sum of its texels' transport, which the rows keep for every
+level of every tile (a pyramid of 2 x 2 sums: O(texels) per row, once), so a level's system
+A'WA costs a gather and (rows x leaves^2), never (pixels x texels^2).
+
+`RowsPart` offers the bases the same interface as `system.SystemPart` (project, project_tree,
+select, gradient, diag, relative_rmse, combine); residuals are computed from the rows directly,
+so they do not cancel the way L'GL - 2h'L + b'b does.
+
+Channel c's transport is kd_c D + ks_c S, with D the diffuse transport (kd = 1) and S the
+specular one (ks = 1); both are kept, so a new kd colour needs no new rows and a new shininess
+only a new S.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy.linalg import blas
+
+from .haar import HaarTree
+from .system import SystemPart
+
+
+class Pyramid:
+    """Texel sums of transport rows at every level of every tile.
+
+    rows : (n, N) float32 transport (texel order: tile by tile, row-major inside a tile).
+    levels[t][l] : (n, 2^l, 2^l) sums over the tile's blocks at level l (l = log2(size): the texels
+    themselves, views into `rows`).
+    """
+
+    def __init__(self, rows: np.ndarray, tile_sizes: tuple[int, ...]):
+        self.rows = rows
+        self.tile_sizes = tuple(int(s) for s in tile_sizes)
+        n = len(rows)
+        self.levels = []  # levels[t][l]: (n, 4^l) the sums of the tile's 2^l x 2^l blocks, row-major
+        self.offsets = []
+        offset = 0
+        for s in self.tile_sizes:
+            top = int(np.log2(s))
+            cur = rows[:, offset:offset + s * s].reshape(n, s, s)
+            tile = {top: None}  # the texels themselves: columns of `rows`
+            for level in range(top - 1, -1, -1):
+                cur = cur[:, :, 0::2] + cur[:, :, 1::2]
+                cur = cur[:, 0::2, :] + cur[:, 1::2, :]
+                tile[level] = cur.reshape(n, -1)
+            self.levels.append(tile)
+            self.offsets.append(offset)
+            offset += s * s
+
+    def head(self, n: int) -> "Pyramid":
+        """The first n rows (views, no copy)."""
+        out = object.__new__(Pyramid)
+        out.rows, out.tile_sizes, out.offsets = self.rows[:n], self.tile_sizes, self.offsets
+        out.levels = [{lv: (None if a is None else a[:n]) for lv, a in tile.items()} for tile in self.levels]
+        return out
+
+    def leaf_sums(self, tree: HaarTree) -> np.ndarray:
+        """(n, leaves) float32: each row's transport summed over each leaf (`tree.leaves()` order)."""
+        if tuple(tree.tile_sizes) != self.tile_sizes:
+            raise ValueError("the tree does not cover this cube map's tiles")
+        out = np.empty((len(self.rows), tree.n_leaves), np.float32)
+        for level, (cols, tile, i, j) in _leaf_groups(tree).items():
+            for t in np.unique(tile):
+                sel = tile == t
+                pool = self.levels[t][level]
+                if pool is None:  # single texels
+                    size = self.tile_sizes[t]
+                    out[:, cols[sel]] = self.rows[:, self.offsets[t] + i[sel] * size + j[sel]]
+                else:
+                    out[:, cols[sel]] = pool[:, (i[sel] << level) + j[sel]]
+        return out
+
+
+def _leaf_groups(tree: HaarTree) -> dict:
+    """The tree's leaves grouped by level: {level: (column, tile, i, j) arrays}."""
+    leaves = np.array(tree.leaves(), dtype=np.int64).reshape(-1, 4)
+    groups = {}
+    for level in np.unique(leaves[:, 1]):
+        cols = np.flatnonzero(leaves[:, 1] == level)
+        groups[int(level)] = (cols, leaves[cols, 0], leaves[cols, 2], leaves[cols, 3])
+    return groups
+
+
+def _gram(A: np.ndarray) -> np.ndarray:
+    """A'A (A float64: dsyrk; float32: ssyrk, accumulated in float32), symmetrised, in float64."""
+    syrk = blas.dsyrk if A.dtype == np.float64 else blas.ssyrk
+    G = syrk(1.0, np.ascontiguousarray(A).T, trans=0, lower=0).astype(np.float64)
+    return np.triu(G) + np.triu(G, 1).T
+
+
+@dataclass
+class RowsPart:
+    """A weighted sample of transport rows: for channel c, sum_j w_j (T_c L - b_c)_j^2 with
+    T_c = kd_c D + ks_c S.
+
+    D, S : `Pyramid`s of the diffuse (kd = 1) and specular (ks = 1) transport (S None: Lambertian).
+    kd, ks : (C,) the material per channel.
+    b : (n, C) photo values; w : (n,) weights (pixels each row stands for).
+    n_pixels : the pixels these rows stand for (what the diagnostics count).
+    precision : "double" accumulates the projected systems in float64; "single" in float32 (half the
+        time: good enough to choose a model size, not for the final light).
+    """
+
+    D: Pyramid
+    S: Pyramid | None
+    kd: np.ndarray
+    ks: np.ndarray
+    b: np.ndarray
+    w: np.ndarray
+    n_pixels: int
+    precision: str = "double"
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.b)
+
+    @cached_property
+    def bb(self) -> np.ndarray:
+        return (self.w[:, None] * self.b**2).sum(axis=0)
+
+    @cached_property
+    def channel_scale(self) -> np.ndarray | None:
+        """a_c with T_c = a_c T_ref when kd and ks are proportional across channels (else None)."""
+        kd, ks = np.asarray(self.kd, float), np.asarray(self.ks, float)
+        ref = int(np.argmax(kd + ks))
+        if kd[ref] + ks[ref] == 0:
+            return np.zeros(len(kd))
+        a = (kd + ks) / (kd[ref] + ks[ref])
+        shared = np.allclose(kd, a * kd[ref], rtol=1e-9, atol=0) and (self.S is None or np.allclose(
+            ks, a * ks[ref], rtol=1e-9, atol=0))
+        return a if shared else None
+
+    def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype) -> np.ndarray:
+        """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows."""
+        sw = np.sqrt(self.w).astype(dtype)[:, None]
+        A = A_D.astype(dtype) * (sw * dtype(self.kd[c]))
+        if A_S is not None and self.ks[c] != 0:
+            A += A_S.astype(dtype) * (sw * dtype(self.ks[c]))
+        return A
+
+    def _system(self, A_D: np.ndarray, A_S: np.ndarray | None) -> SystemPart:
+        """The weighted normal equations of coefficient-space rows (in `precision`)."""
+        dtype = np.float64 if self.precision == "double" else np.float32
+        sw = np.sqrt(self.w)
+        scale = self.channel_scale
+        if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
+            ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
+            A = self._weighted(A_D, A_S, ref, dtype)
+            h = (A.T.astype(np.float64) @ (self.b * sw[:, None])) * scale[None, :]
+            return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
+        G, h = [], []
+        for c in range(len(self.kd)):
+            A = self._weighted(A_D, A_S, c, dtype)
+            G.append(_gram(A))
+            h.append(A.T.astype(np.float64) @ (self.b[:, c] * sw))
+        return SystemPart(np.stack(G), np.column_stack(h), self.bb, self.n_pixels, None)
+
+    # -- the part interface (as system.SystemPart) --------------------------------------------------
+    def project_tree(self, tree: HaarTree) -> SystemPart:
+        return self._system(self.D.leaf_sums(tree), None if self.S is None else self.S.leaf_sums(tree))
+
+    def head(self, n: int, precision: str | None = None) -> "RowsPart":
+        """The first n rows, standing for the same pixels (weights scaled up): a smaller sample when
+        the rows are ordered so that every prefix is spread like the whole (`sampling.fit_sample`)."""
+        n = min(int(n), self.n_rows)
+        factor = self.w.sum() / max(self.w[:n].sum(), 1e-300)
+        return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), self.kd, self.ks, self.b[:n],
+                        self.w[:n] * factor, self.n_pixels, precision or self.precision)
+
+    def project(self, P) -> SystemPart:
+        """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
+        def apply(rows):
+            out = rows @ P
+            return np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
+
+        return self._system(apply(self.D.rows), None if self.S is None else apply(self.S.rows))
+
+    def select(self, texels: np.ndarray) -> SystemPart:
+        sub = np.asarray(texels, np.int64)
+        return self._system(self.D.rows[:, sub].astype(np.float64),
+                            None if self.S is None else self.S.rows[:, sub].astype(np.float64))
+
+    def predict(self, light: np.ndarray, support=None) -> np.ndarray:
+        """(n, C) the rows' radiance under a texel light (N, C); `support`: its non-zero texels."""
+        L = np.asarray(light, dtype=np.float64)
+        sub = slice(None) if support is None else np.asarray(support, np.int64)
+        D = self.D.rows[:, sub]
+        out = np.asarray(self.kd)[None, :] * (D @ L[sub].astype(np.float32)).astype(np.float64)
+        if self.S is not None:
+            out += np.asarray(self.ks)[None, :] * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
+        return out
+
+    def residual(self, light: np.ndarray) -> np.ndarray:
+        """(C,) weighted sum of squared residuals of a texel light."""
+        r = self.predict(light) - self.b
+        return (self.w[:, None] * r**2).sum(axis=0)
+
+    def relative_rmse(self, light: np.ndarray) -> float:
+        return float(np.sqrt(self.residual(light).sum() / max(self.bb.sum(), 1e-300)))
+
+    def gradient(self, light: np.ndarray, support=None) -> np.ndarray:
+        """(N, C) T'W(b - T L) at a texel light (`support`: its non-zero texels)."""
+        r = (self.w[:, None] * (self.b - self.predict(light, support))).astype(np.float32)
+        out = np.asarray(self.kd)[None, :] * (self.D.rows.T @ r).astype(np.float64)
+        if self.S is not None:
+            out += np.asarray(self.ks)[None, :] * (self.S.rows.T @ r).astype(np.float64)
+        return out
+
+    def channel_diag(self) -> np.ndarray:
+        """(C, N) sum_j w_j T_c,ij^2: the squared transport each texel gets, per channel."""
+        C, N = len(self.kd), self.D.rows.shape[1]
+        scale = self.channel_scale
+        ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
+        channels = [ref] if scale is not None else range(C)
+        out = np.zeros((C, N))
+        w = self.w.astype(np.float32)
+        for a in range(0, self.n_rows, 4096):
+            sl = slice(a, a + 4096)
+            D = self.D.rows[sl]
+            S = None if self.S is None else self.S.rows[sl]
+            for c in channels:
+                T = D * np.float32(self.kd[c])
+                if S is not None and self.ks[c] != 0:
+                    T += S * np.float32(self.ks[c])
+                T *= T
+                out[c] += w[sl] @ T
+        if scale is not None:
+            out = scale[:, None] ** 2 * out[ref][None, :]
+        return out
+
+    def diag(self, channels: str = "max") -> np.ndarray:
+        """(N,) the squared transport each texel gets: the channels' max or mean."""
+        per = self.channel_diag()
+        return per.max(axis=0) if channels == "max" else per.mean(axis=0)
+
+    def combine(self, other) -> "UnionPart":
+        return UnionPart((self, other))
+
+
+@dataclass
+class UnionPart:
+    """The union of parts (e.g. the fit sample and the held-out pixels): every quantity is the sum."""
+
+    parts: tuple
+
+    @property
+    def n_pixels(self) -> int:
+        return sum(p.n_pixels for p in self.parts)
+
+    @property
+    def bb(self) -> np.ndarray:
+        return sum(p.bb for p in self.parts)
+
+    def _sum(self, systems) -> SystemPart:
+        out = None
+        for s in systems:
+            out = s if out is None else out.combine(s)
+        return out
+
+    def project_tree(self, tree):
+        return self._sum(p.project_tree(tree) for p in self.parts)
+
+    def project(self, P):
+        return self._sum(p.project(P) for p in self.parts)
+
+    def select(self, texels):
+        return self._sum(p.select(texels) for p in self.parts)
+
+    def residual(self, light):
+        return sum(p.residual(light) for p in self.parts)
+
+    def relative_rmse(self, light) -> float:
+        return float(np.sqrt(self.residual(light).sum() / max(self.bb.sum(), 1e-300)))
+
+    def gradient(self, light, support=None):
+        return sum(p.gradient(light, support) for p in self.parts)
+
+    def channel_diag(self) -> np.ndarray:
+        return sum(p.channel_diag() for p in self.parts)
+
+    def diag(self, channels: str = "max"):
+        per = self.channel_diag()
+        return per.max(axis=0) if channels == "max" else per.mean(axis=0)
+
+    def combine(self, other):
+        return UnionPart(self.parts + (other,))
+
+
+class TransportRows:
+    """The transport of some used pixels (rows of a visibility), built once per material.
+
+    The diffuse transport D is built once; the specular one S once per (model, shininess). Only the
+    stored visibility rows (bit-packed) and the rows' geometry are kept to rebuild S.
+    """
+
+    def __init__(self, vis, rows: np.ndarray):
+        from ..geometry.visibility import VisibilityData
+
+        rows = np.asarray(rows, np.int64)
+        s = vis.samples
+        sub = type(s)(**{f: getattr(s, f)[rows] for f in ("pixel", "position", "normal", "geometric_normal", "view",
+                                                         "face")})
+        self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows])
+        self.rows = rows
+        self._diffuse: Pyramid | None = None
+        self._specular: dict = {}
+
+    def diffuse(self) -> Pyramid:
+        if self._diffuse is None:
+            from ..model.render import diffuse_transport
+
+            v = self.vis
+            D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
+            for sl, V in v.blocks(2048):
+                D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube)
+            self._diffuse = Pyramid(D, v.cube.tile_sizes)
+        return self._diffuse
+
+    def specular(self, model: str, shininess: float) -> Pyramid:
+        key = (model, float(shininess))
+        if key not in self._specular:
+            from ..model.materials import Material
+            from ..model.render import specular_transport
+
+            S = np.empty((self.vis.n_pixels, self.vis.cube.n_texels), np.float32)
+            for sl, V in self.vis.blocks(2048):
+                S[sl] = specular_transport(V, self.vis.samples.normal[sl], self.vis.samples.view[sl], self.vis.cube,
+                                           Material(ks=(1.0, 1.0, 1.0), shininess=shininess, model=model))
+            self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}  # the latest only (memory)
+        return self._specular[key]
+
+    def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int) -> RowsPart:
+        """The rows' system under `material` against `photo` ((n, C) values of these rows)."""
+        S = self.specular(material.model, material.shininess) if material.specular else None
+        return RowsPart(self.diffuse(), S, np.asarray(material.kd, float), np.asarray(material.ks, float),
+                        np.asarray(photo, np.float64), np.asarray(weights, np.float64), int(n_pixels))

@@ -1,0 +1,572 @@
+"""Reflectance: the specular parameters by Levenberg-Marquardt, alternating with the light solve.
+
+The paper (§5-6) solves the light under a guessed specular model, fits ks and n with the light
+fixed, and solves the light again. Here:
+
+* `specular_data` evaluates, once per light, the parts of the forward model (`render`) that do not
+  depend on the parameters, over the texels that carry light (a solved light is exactly zero
+  almost everywhere a sun dominates, so this is cheap): the diffuse shading D L (kd = 1) and, per
+  pixel and lit texel, the factor A and the lobe cosine c of `render.specular_factors`.
+* `fit_specular` fits kd (RGB), ks (RGB) and log n by `scipy.optimize.least_squares(method="lm")`
+  with an analytic Jacobian:  I_c = kd_c (D L)_c + ks_c norm(n) sum_i A_i c_i^n L_ic; then ks is
+  made grey (highlights carry the light's colour) by moving its colour into the light, which is
+  what makes kd's colour observable (`SpecularFit`). Starts that LM cannot bring home (n far
+  off, a lobe too narrow to see any highlight, a worse local optimum) are caught by a scan over
+  n (the best kd, ks >= 0 for each n are a small NNLS) that gives a new start. Uncertainties come
+  from the Jacobian (conditional on the light).
+* `alternate` runs light -> LM -> light ... until the objective stops improving; `select` decides
+  between the Lambertian model and a specular one on held-out pixels (`auto`).
+
+Scale: light x albedo is only known as a product. After every LM fit the material is rescaled so
+that the mean of kd equals the mean of the reference kd (the user's --kd, default 1), and the
+light takes the inverse factor, leaving every rendered pixel unchanged.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import least_squares, nnls
+
+from ..geometry.visibility import VisibilityData, decode
+from .materials import SPECULAR_MODELS, Material
+from .render import lobe_norm, specular_factors, transport
+
+SHININESS_RANGE = (0.5, 20000.0)  # a fitted n outside this is no specular lobe we can resolve
+SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart scan over n
+ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by less than this
+MAX_PAIRS = 48_000_000  # (pixel, lit texel) pairs held for the LM (2 float32 arrays: ~400 MB)
+LIT_TOL = 0.0  # texels whose light is exactly zero (all channels) add nothing and are skipped
+_CHUNK = 4096  # pixel rows per evaluation chunk (keeps temporaries small)
+MIN_FIT_PIXELS = 30  # a specular fit has 7 unknowns (kd, ks RGB and n): fewer pixels cannot pin them
+
+
+class FitError(ValueError):
+    """The specular fit found nothing it can report (e.g. no lit texel, no usable pixel)."""
+
+
+@dataclass
+class SpecularData:
+    """Everything the LM needs for one light: evaluation without another pass over visibility.
+
+    diffuse : (P, 3) D L, the radiance with kd = 1 and no specular term.
+    A, log_c : (P, K) float32 specular factors over the lit texels (log of the lobe cosine;
+        pairs with c = 0 have A = 0 and log_c = -80, so c^n underflows to 0 without infinities).
+    light : (K, 3) the lit texels' radiance.
+    photo : (P, 3); fit : (P,) bool, True for fitted pixels, False for held-out ones.
+    rows : (P,) indices of these pixels in the visibility data.
+    """
+
+    model: str
+    diffuse: np.ndarray
+    A: np.ndarray
+    log_c: np.ndarray
+    light: np.ndarray
+    photo: np.ndarray
+    fit: np.ndarray
+    n_pixels_available: int
+    lit_texels: int
+    rows: np.ndarray
+
+    def specular(self, shininess: float, derivative: bool = False):
+        """(P, 3) sum_i A_i c_i^n L_i norm(n) and, if asked, its derivative with respect to log n."""
+        norm, dnorm = lobe_norm(shininess, self.model)
+        n32 = np.float32(shininess)
+        L = self.light.astype(np.float32)
+        EL = np.empty((len(self.A), 3))
+        ELc = np.empty((len(self.A), 3)) if derivative else None
+        for a in range(0, len(self.A), _CHUNK):
+            sl = slice(a, a + _CHUNK)
+            E = np.exp(n32 * self.log_c[sl])
+            E *= self.A[sl]
+            EL[sl] = E @ L
+            if derivative:
+                E *= self.log_c[sl]
+                ELc[sl] = E @ L
+        S = norm * EL
+        if not derivative:
+            return S
+        return S, shininess * (dnorm * EL + norm * ELc)
+
+    def predict(self, kd, ks: float, shininess: float) -> np.ndarray:
+        return np.asarray(kd)[None, :] * self.diffuse + ks * self.specular(shininess)
+
+    def rmse(self, kd, ks: float, shininess: float, which: str = "fit") -> float | None:
+        """Relative RMSE over the fit (or held-out) pixels, all channels."""
+        sel = self.fit if which == "fit" else ~self.fit
+        if not sel.any():
+            return None
+        r = self.predict(kd, ks, shininess)[sel] - self.photo[sel]
+        return float(np.sqrt((r**2).sum() / max((self.photo[sel] ** 2).sum(), 1e-300)))
+
+
+def _pixel_subset(candidates: np.ndarray, k: int) -> np.ndarray:
+    """Indices of about k of the candidate pixels, evenly spread over their order (deterministic)."""
+    idx = np.flatnonzero(candidates)
+    if len(idx) <= k:
+        return idx
+    return idx[np.unique(np.linspace(0, len(idx) - 1, k).round().astype(np.int64))]
+
+
+def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, model: str,
+                  use: np.ndarray | None = None, held_out: np.ndarray | None = None,
+                  max_pairs: int = MAX_PAIRS, rows: np.ndarray | None = None,
+                  weights: np.ndarray | None = None) -> SpecularData:
+    """Precompute the LM's inputs for a light (N, 3) over the used pixels.
+
+    Only texels with light are kept; if pixels x lit texels exceeds `max_pairs`, an evenly spread
+    subset of the pixels is used (reported as n_pixels_available vs len(photo)). `rows` (indices
+    of used pixels) fixes the pixels instead, each standing for `weights` pixels: the fit then
+    minimises the weighted residual (every term of a row is scaled by sqrt(weight)).
+    """
+    if model not in SPECULAR_MODELS:
+        raise ValueError(f"no specular term in model {model!r}; use one of {SPECULAR_MODELS}")
+    L = np.asarray(light, dtype=np.float64)
+    if L.ndim == 1:
+        L = np.repeat(L[:, None], 3, axis=1)
+    lit = np.flatnonzero(np.any(np.abs(L) > LIT_TOL, axis=1))
+    if len(lit) == 0:
+        raise FitError("the light is zero everywhere: there is no highlight to fit")
+    P = vis.n_pixels
+    use = np.ones(P, bool) if use is None else np.asarray(use, bool)
+    held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
+    n_fit = int((use & ~held_out).sum())
+    if n_fit < MIN_FIT_PIXELS:
+        raise FitError(f"{n_fit} pixels are left to fit the reflectance to; a specular term (7 unknowns) needs "
+                       f"at least {MIN_FIT_PIXELS}")
+    if rows is None:
+        rows = _pixel_subset(use, max(1, max_pairs // len(lit)))
+        weights = None
+    else:
+        keep = use[rows]
+        rows = np.asarray(rows, np.int64)[keep]
+        weights = None if weights is None else np.asarray(weights, np.float64)[keep]
+        order = np.argsort(rows)
+        rows = rows[order]
+        weights = None if weights is None else weights[order]
+    s = vis.samples
+    cube = vis.cube
+    diffuse = np.empty((len(rows), 3))
+    A = np.empty((len(rows), len(lit)), np.float32)
+    log_c = np.empty((len(rows), len(lit)), np.float32)
+    lambert = Material()
+    out = 0
+    for first in range(0, P, _CHUNK):  # blocks of stored rows, keeping the selected ones
+        r = rows[(rows >= first) & (rows < first + _CHUNK)]
+        if len(r) == 0:
+            continue
+        V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)
+        D, _ = transport(V, s.normal[r], s.view[r], cube, lambert)
+        k = slice(out, out + len(r))
+        diffuse[k] = D.astype(np.float64) @ L
+        Ab, c = specular_factors(V[:, lit], s.normal[r], s.view[r], cube, model, lit)
+        A[k] = Ab
+        with np.errstate(divide="ignore"):
+            log_c[k] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
+        out += len(r)
+    values = np.asarray(photo, np.float64)[rows]
+    if weights is not None:
+        sw = np.sqrt(weights)
+        diffuse *= sw[:, None]
+        A *= sw.astype(np.float32)[:, None]
+        values = values * sw[:, None]
+    return SpecularData(model, diffuse, A, log_c, L[lit], values, ~held_out[rows], int(use.sum()), len(lit), rows)
+
+
+@dataclass
+class SpecularFit:
+    """Result of one LM fit with the light fixed.
+
+    The LM fits ks per channel; a specular term is assumed grey (dielectric: highlights have the
+    light's colour), so a coloured ks says the light's colour is off by `light_scale` (per channel).
+    `material` has that colour moved into the light: ks grey (the mean), kd_c / light_scale_c. It
+    renders the same pixels as the fit with the light multiplied by `light_scale`. This jumps the
+    colour mode that alternation alone would only creep along (the light re-absorbs kd's colour).
+    When ks is not significant the colour cannot be told apart and light_scale is 1.
+    """
+
+    material: Material
+    light_scale: np.ndarray  # (3,) per-channel light factor that goes with `material`
+    ks_rgb: np.ndarray  # (3,) ks as fitted per channel (before the colour transfer)
+    sigma: dict  # one-sigma uncertainties {"kd": [3], "ks_rgb": [3], "ks": float, "n": float, "log_n": float}
+    fit_rmse: float
+    held_out_rmse: float | None
+    start: dict
+    path: str  # "lm", "scan+lm" or "scan" (how the optimum was reached)
+    message: str
+    evaluations: int
+    seconds: float
+    pixels: int
+    lit_texels: int
+
+    @property
+    def ks_significant(self) -> bool:
+        """ks is more than three standard deviations above zero."""
+        ks = float(np.mean(self.material.ks))
+        return ks > 0 and ks > 3 * self.sigma.get("ks", np.inf)
+
+    def summary(self) -> dict:
+        m = self.material
+        return {"kd": list(m.kd), "ks": float(np.mean(m.ks)), "n": m.shininess, "ks_rgb_fitted": self.ks_rgb.tolist(),
+                "light_colour_scale": self.light_scale.tolist(), "sigma": self.sigma,
+                "fit_rmse": self.fit_rmse, "held_out_rmse": self.held_out_rmse, "start": self.start,
+                "path": self.path, "message": self.message, "evaluations": self.evaluations,
+                "seconds": self.seconds, "pixels": self.pixels, "lit_texels": self.lit_texels,
+                "ks_significant": self.ks_significant}
+
+
+def _valid(x: np.ndarray) -> bool:
+    n = np.exp(x[6]) if np.isfinite(x[6]) and x[6] < 50 else np.inf
+    return bool(np.all(np.isfinite(x)) and np.all(x[:6] >= 0) and SHININESS_RANGE[0] <= n <= SHININESS_RANGE[1])
+
+
+def _linear_fit(data: SpecularData, shininess: float) -> tuple[np.ndarray, float]:
+    """Best kd (3) and ks (3) >= 0 for a fixed n (per channel a 2-column NNLS over the fit pixels)
+    and the squared residual."""
+    f = data.fit
+    S = data.specular(shininess)[f]
+    D = data.diffuse[f]
+    kd, ks, sq = np.zeros(3), np.zeros(3), 0.0
+    for c in range(3):
+        design = np.column_stack([D[:, c], S[:, c]])
+        scale = np.sqrt((design**2).sum(axis=0))
+        scale[scale == 0] = 1.0
+        x, rnorm = nnls(design / scale, data.photo[f, c], maxiter=50)
+        kd[c], ks[c] = x / scale
+        sq += float(rnorm**2)
+    return np.concatenate([kd, ks]), sq
+
+
+def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200, guard: bool = True) -> SpecularFit:
+    """Fit kd (RGB), ks (RGB) and n with the light fixed, by Levenberg-Marquardt in (kd, ks, log n),
+    then move ks's colour into the light (see SpecularFit).
+
+    Starts from `start` (its kd, ks and n). With `guard`, a scan over n (kd, ks >= 0 exact for each
+    n) guards the start: LM starts from the scan's best when it fits better; if LM leaves the
+    feasible region (kd or ks < 0, n outside SHININESS_RANGE, non-finite) or ends worse than the
+    scan's best, it restarts there; if that fails too, the scan's best point (feasible by
+    construction) is returned with a message saying so. Without `guard` (a start that is already
+    an optimum of a nearby problem, e.g. the previous alternation round's) the scan runs only if LM
+    leaves the feasible region. Never returns NaNs.
+    """
+    t0 = time.perf_counter()
+    f = data.fit
+    b = data.photo[f]
+    scale = float(np.sqrt(np.mean(b**2))) or 1.0
+    nfev = 0
+
+    def residual(x):
+        nonlocal nfev
+        nfev += 1
+        n = float(np.exp(np.clip(x[6], -10, 12)))
+        r = x[:3][None, :] * data.diffuse[f] + x[3:6][None, :] * data.specular(n)[f] - b
+        return (r / scale).T.ravel()
+
+    def jacobian(x):
+        n = float(np.exp(np.clip(x[6], -10, 12)))
+        S, dS = data.specular(n, derivative=True)
+        S, dS = S[f], dS[f]
+        m = len(S)
+        J = np.zeros((3 * m, 7))
+        for c in range(3):
+            rows = slice(c * m, (c + 1) * m)
+            J[rows, c] = data.diffuse[f, c]
+            J[rows, 3 + c] = S[:, c]
+            J[rows, 6] = x[3 + c] * dS[:, c]
+        return J / scale
+
+    def lm(x0):
+        with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+            res = least_squares(residual, x0, jac=jacobian, method="lm", x_scale="jac",
+                                xtol=1e-10, ftol=1e-12, gtol=1e-12, max_nfev=max_evaluations)
+        return res.x
+
+    start_n = float(start.shininess)
+    if not start_n > 0:
+        raise FitError(f"the start shininess must be > 0, got {start_n}")
+    x0 = np.array([*start.kd, *start.ks, np.log(start_n)], float)
+    path, message = "lm", "converged from the start"
+    if not guard:
+        x = lm(x0)
+        if not _valid(x):  # the start led out of the feasible region: guard after all
+            guard = True
+    if guard:
+        # n is the one nonlinear parameter: a scan over it (kd, ks >= 0 solved exactly for each n)
+        # finds the basin of the global optimum, whatever the start. LM starts from the scan's best
+        # when that fits better than the start (a start far off, or a lobe far too narrow that fits
+        # a few pixels' noise), and restarts from it if LM from the start leaves the feasible region.
+        scan = [(_linear_fit(data, n), n) for n in SCAN_SHININESS]
+        (coef, sq_best), n_best = min(scan, key=lambda t: t[0][1])
+        xs = np.array([*coef, np.log(n_best)])
+        sq_start = float(np.sum(residual(x0) ** 2)) * scale**2 if _valid(x0) else np.inf
+        if not np.any(coef[3:6] > 0) and sq_best <= sq_start:
+            x, path = xs, "scan"
+            message = "no specular term fits at any n of the scan (ks = 0): the data support no highlight"
+        else:
+            from_scan = sq_best < sq_start
+            x = lm(xs if from_scan else x0)
+            if from_scan:
+                path, message = "scan+lm", f"started at the scan's best n = {n_best:g} (it fits better than n = {start_n:g})"
+            if not _valid(x) or float(np.sum(residual(x) ** 2)) * scale**2 > sq_best:
+                again = lm(xs) if not from_scan else None
+                if again is not None and _valid(again):
+                    x, path = again, "scan+lm"
+                    message = f"LM from the start (n = {start_n:g}) left the feasible region or stopped in a worse " \
+                              f"local optimum; restarted at the scan's best n = {n_best:g}"
+                else:
+                    x, path = xs, "scan"
+                    message = f"LM did not improve on the scan's best n = {n_best:g}: kept that (within a factor 2^0.5)"
+    n = float(np.exp(x[6]))
+    kd, ks_rgb = np.maximum(x[:3], 0.0), np.maximum(x[3:6], 0.0)
+    # uncertainties from the Jacobian at the optimum (conditional on the light)
+    J = jacobian(x)
+    r = residual(x)
+    dof = max(len(r) - 7, 1)
+    cov = (r @ r / dof) * np.linalg.pinv(J.T @ J)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sd_ks_mean = float(np.sqrt(max(cov[3:6, 3:6].sum(), 0.0)) / 3)
+    sigma = {"kd": sd[:3].tolist(), "ks_rgb": sd[3:6].tolist(), "ks": sd_ks_mean, "n": float(n * sd[6]),
+             "log_n": float(sd[6])}
+    ks = float(ks_rgb.mean())
+    light_scale = np.ones(3)
+    if ks > 0 and np.all(ks_rgb > 3 * sd[3:6]):
+        light_scale = ks_rgb / ks  # grey ks: its colour is the light's
+    material = Material(kd=tuple(float(v) for v in kd / light_scale), ks=(ks, ks, ks), shininess=n, model=data.model)
+    pred = kd[None, :] * data.diffuse + ks_rgb[None, :] * data.specular(n)
+
+    def rel(sel):
+        if not sel.any():
+            return None
+        return float(np.sqrt(((pred[sel] - data.photo[sel]) ** 2).sum() / max((data.photo[sel] ** 2).sum(), 1e-300)))
+
+    fit_rmse = rel(data.fit)
+    return SpecularFit(material, light_scale, ks_rgb, sigma, fit_rmse, rel(~data.fit),
+                       {"kd": list(start.kd), "ks": list(start.ks), "n": start_n}, path, message, nfev,
+                       time.perf_counter() - t0, len(data.photo), data.lit_texels)
+
+
+def normalise(material: Material, light: np.ndarray, kd_reference) -> tuple[Material, np.ndarray, float]:
+    """Rescale (kd, ks) so that mean(kd) = mean(kd_reference), the light by the inverse factor.
+
+    Returns the material, the light and the factor s (material / s, light * s): renders unchanged.
+    """
+    ref = float(np.mean(kd_reference))
+    mean_kd = float(np.mean(material.kd))
+    if ref <= 0 or mean_kd <= 1e-9 * max(ref, float(np.max(material.ks))):
+        return material, light, 1.0
+    s = mean_kd / ref
+    m = replace(material, kd=tuple(k / s for k in material.kd), ks=tuple(k / s for k in material.ks))
+    return m, light * s, s
+
+
+# -- alternation -----------------------------------------------------------------------------
+@dataclass
+class Round:
+    """One light solve under a material (and the LM fit that produced the material, if any)."""
+
+    index: int
+    material: Material
+    fit_rmse: float  # the light's relative RMSE over all used pixels
+    held_out_rmse: float | None  # at the light's chosen level, over the held-out pixels
+    light_seconds: float
+    fit: SpecularFit | None = None
+
+    def summary(self) -> dict:
+        out = {"round": self.index, "material": self.material.to_json(), "fit_rmse": self.fit_rmse,
+               "held_out_rmse": self.held_out_rmse, "light_seconds": self.light_seconds}
+        if self.fit is not None:
+            out["lm"] = self.fit.summary()
+        return out
+
+
+@dataclass
+class Reflectance:
+    """The chosen material with its light solution, and how it was reached."""
+
+    material: Material
+    solution: object  # light.LightSolution (light scaled to match `material`)
+    context: object  # whatever solve_light returned with the solution (e.g. normal equations)
+    rounds: list[Round]
+    chosen_round: int
+    mode: str
+    decision: str
+    candidates: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def fit(self) -> SpecularFit | None:
+        return self.rounds[self.chosen_round].fit
+
+    def summary(self) -> dict:
+        m = self.material
+        fit = self.fit
+        kd_mean = float(np.mean(m.kd))
+        out = {"model": m.model, "kd": list(m.kd), "ks": list(m.ks), "n": m.shininess,
+               "ks_over_kd": (float(np.mean(m.ks)) / kd_mean) if kd_mean > 0 else None,
+               "mode": self.mode, "decision": self.decision, "candidates": self.candidates,
+               "uncertainty": fit.sigma if fit is not None else None,
+               "kd_colour_observable": bool(fit is not None and fit.ks_significant),
+               "chosen_round": self.chosen_round, "rounds": [r.summary() for r in self.rounds],
+               "seconds": self.seconds}
+        if fit is not None:
+            out["uncertainty_note"] = ("one sigma from the LM Jacobian with the light fixed (conditional on "
+                                       "the light; the light's own uncertainty is not included)")
+        return out
+
+
+SolveLight = Callable[[Material], tuple[object, object]]  # material -> (LightSolution, context)
+
+
+def _params(m: Material) -> np.ndarray:
+    return np.array([*m.kd, float(np.mean(m.ks)), np.log(max(m.shininess, 1e-12))])
+
+
+def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
+    """Speed up the alternation's slow, steady drift (the light re-absorbs part of the highlight each
+    round, so ks creeps up geometrically): when the last two LM steps point the same way, jump
+    towards the limit of the geometric series, theta + d rho / (1 - rho), rho = (d.d') / (d'.d')
+    capped at 0.75 (at most 3 steps ahead). The next round's LM starts from the light solved
+    under the jump and corrects any overshoot; rounds are judged by their error, so a bad jump
+    costs a round, never the result."""
+    if len(fitted) < 3:
+        return material
+    d_prev, d = fitted[-2] - fitted[-3], fitted[-1] - fitted[-2]
+    denom = float(d_prev @ d_prev)
+    if denom <= 0:
+        return material
+    rho = float(d @ d_prev) / denom
+    if not 0.0 < rho < 1.0:
+        return material
+    rho = min(rho, 0.75)
+    x = fitted[-1] + d * rho / (1.0 - rho)
+    if not (np.all(np.isfinite(x)) and np.all(x[:4] >= 0)
+            and SHININESS_RANGE[0] <= np.exp(min(x[4], 50.0)) <= SHININESS_RANGE[1]):
+        return material
+    fitted[-1] = x  # the next step is measured from where the light was solved
+    return replace(material, kd=tuple(float(v) for v in x[:3]), ks=(float(x[3]),) * 3, shininess=float(np.exp(x[4])))
+
+
+def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
+              use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
+              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None) -> Reflectance:
+    """Light under `start` -> LM -> light -> ... until a round lowers the all-pixel RMSE by < tol.
+
+    The best round (lowest RMSE) is kept; at most `max_rounds` LM fits. `rows`: (pixel indices,
+    weights) the LM fits (default: an evenly spread subset of the used pixels, `specular_data`).
+    """
+    t0 = time.perf_counter()
+    kd_ref = start.kd if kd_reference is None else kd_reference
+    if start.model not in SPECULAR_MODELS:
+        raise ValueError(f"alternation needs a specular model, got {start.model!r}")
+    ts = time.perf_counter()
+    sol, ctx = solve_light(start)
+    rounds = [Round(0, start, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - ts)]
+    kept = [(sol, ctx)]
+    if progress:
+        progress(rounds[0])
+    best = 0
+    material = start
+    fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
+    for k in range(1, max_rounds + 1):
+        data = specular_data(vis, photo, sol.light, start.model, use, held_out, **_rows(rows))
+        fit = fit_specular(data, material, guard=k == 1)
+        material, _, _ = normalise(fit.material, sol.light, kd_ref)
+        fitted.append(_params(material))
+        fitted_material = material
+        material = _extrapolate(fitted, material)
+        jumped = material is not fitted_material
+        ts = time.perf_counter()
+        sol, ctx = solve_light(material)
+        rounds.append(Round(k, material, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - ts, fit))
+        kept.append((sol, ctx))
+        if progress:
+            progress(rounds[-1])
+        previous = rounds[best].fit_rmse
+        if rounds[k].fit_rmse < previous:
+            best = k
+            kept[:k] = [None] * k  # only the best round's light is kept (memory)
+        if previous - rounds[k].fit_rmse < tol * previous and not (jumped and rounds[k].fit_rmse >= previous):
+            break  # (a jump that overshot gets one more round: its LM corrects it)
+    sol, ctx = kept[best]
+    return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
+                       f"alternation stopped after {len(rounds) - 1} LM round(s); round {best} has the lowest error",
+                       seconds=time.perf_counter() - t0)
+
+
+def _rows(rows) -> dict:
+    return {} if rows is None else {"rows": rows[0], "weights": rows[1]}
+
+
+def fixed(material: Material, solve_light: SolveLight, mode: str, decision: str, progress=None) -> Reflectance:
+    """No fit: the light under a material taken as it is (--reflectance given / lambert)."""
+    t0 = time.perf_counter()
+    sol, ctx = solve_light(material)
+    r = Round(0, material, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - t0)
+    if progress:
+        progress(r)
+    return Reflectance(material, sol, ctx, [r], 0, mode, decision, seconds=time.perf_counter() - t0)
+
+
+def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
+           use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
+           min_gain: float = 0.05, max_rounds: int = 8, tol: float = ROUND_TOL, progress=None,
+           rows=None, probe_rows=None) -> Reflectance:
+    """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
+
+    1. Light under Lambert (kd = kd_reference).
+    2. A probe: LM with that light fixed, from `start` (on `probe_rows` when given: it only has to
+       tell whether a specular term helps). If ks is not significant (< 3 sigma) or the probe
+       lowers the held-out error of the same light by less than `min_gain`, stay Lambertian (no
+       further light solve).
+    3. Otherwise alternate from the probe's material and keep the specular model if its held-out
+       error beats the Lambertian light's by `min_gain`.
+    """
+    t0 = time.perf_counter()
+    kd_ref = start.kd if kd_reference is None else kd_reference
+    lambert = Material(kd=tuple(kd_ref))
+    ts = time.perf_counter()
+    sol0, ctx0 = solve_light(lambert)
+    r0 = Round(0, lambert, sol0.fit_rmse, sol0.held_out_rmse, time.perf_counter() - ts)
+    if progress:
+        progress(r0)
+    base = sol0.held_out_rmse if sol0.held_out_rmse is not None else sol0.fit_rmse
+    candidates = {"lambert": {"held_out_rmse": sol0.held_out_rmse, "fit_rmse": sol0.fit_rmse}}
+
+    def stay(reason, rounds):
+        return Reflectance(lambert, sol0, ctx0, rounds, 0, "auto", reason, candidates, time.perf_counter() - t0)
+
+    try:
+        data = specular_data(vis, photo, sol0.light, start.model, use, held_out,
+                             **_rows(probe_rows if probe_rows is not None else rows))
+    except FitError as exc:
+        return stay(f"lambert: {exc}", [r0])
+    probe = fit_specular(data, start)
+    which = "held_out" if (~data.fit).any() else "fit"
+    plain = data.rmse(lambert.kd, 0.0, 1.0, which)
+    probe_err = probe.held_out_rmse if which == "held_out" else probe.fit_rmse
+    gain = 1.0 - probe_err / plain if plain else 0.0
+    candidates["probe"] = {**probe.summary(), "gain": gain}
+    if not probe.ks_significant or gain < min_gain:
+        ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
+        why = (f"is not significant (ks {ks:.3g} +- {sd:.2g})" if not probe.ks_significant else
+               f"lowers the {which.replace('_', '-')} error by only {100 * gain:.2f} % (< {100 * min_gain:g} %)")
+        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}",
+                    [r0, Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe)])
+    material, _, _ = normalise(probe.material, sol0.light, kd_ref)
+    shifted = (lambda r: progress(replace(r, index=r.index + 1))) if progress else None
+    spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
+                     rows=rows)
+    best = spec.rounds[spec.chosen_round]
+    err = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse
+    candidates[start.model] = {"held_out_rmse": best.held_out_rmse, "fit_rmse": best.fit_rmse}
+    gain = 1.0 - err / base if base else 0.0
+    rounds = [r0] + [replace(r, index=r.index + 1) for r in spec.rounds]
+    if gain >= min_gain:
+        return Reflectance(spec.material, spec.solution, spec.context, rounds, spec.chosen_round + 1, "auto",
+                           f"{start.model}: lowers the held-out error by {100 * gain:.1f} % "
+                           f"(>= {100 * min_gain:g} %) over Lambertian", candidates, time.perf_counter() - t0)
+    return stay(f"lambert: a {start.model} term lowers the held-out error by only {100 * gain:.2f} % "
+                f"(< {100 * min_gain:g} %)", rounds)

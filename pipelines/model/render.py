@@ -1,0 +1,145 @@
+"""The one forward model (DESIGN §2): every solver and every render goes through `transport`.
+
+    I_j = sum_i L_i w_i V_ij max(0, N_j . d_i) f_j(d_i, v_j)
+
+with L_i the radiance of light texel i, w_i its exact solid angle, V_ij its visibility, N_j the
+shading normal, v_j the direction to the camera and f the BRDF:
+    lambert       f = kd / pi
+    blinn-phong   f = kd / pi + ks (n + 8) / (8 pi) max(0, N . H)^n,  H = normalize(d + v)
+    phong         f = kd / pi + ks (n + 2) / (2 pi) max(0, R . d)^n,  R = reflect(v, N)
+    phong-classic f = kd / pi + ks max(0, R . d)^n / max(N . d, eps)  (the paper's unnormalised
+                  term: its radiance contribution is ks (R.d)^n L w, without the cosine)
+kd and ks are RGB; the transport splits into a diffuse part D (kd = 1) and a specular part S
+(ks = 1) so that channel c renders kd_c D L_c + ks_c S L_c.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry.visibility import VisibilityData
+from ..light.cubemap import CubeMap
+from .materials import Material
+
+def facing(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(P, N) cosines max(0, N . d) between shading normals and texel directions (float32)."""
+    return np.maximum(normals.astype(np.float32) @ directions.astype(np.float32).T, 0.0)
+
+
+def lobe_cosines(normals: np.ndarray, views: np.ndarray, directions: np.ndarray, model: str) -> np.ndarray:
+    """(P, N) float32 cosine the specular lobe raises to the power n: N.H (blinn-phong) or R.d
+    (phong, phong-classic; R the mirror of the view direction). Not clipped: may be negative."""
+    if model == "blinn-phong":
+        # N.H without forming H: |v + d|^2 = 2 + 2 v.d
+        vd = views.astype(np.float32) @ directions.astype(np.float32).T
+        nv = np.einsum("pk,pk->p", normals, views).astype(np.float32)[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (nv + normals.astype(np.float32) @ directions.astype(np.float32).T) / np.sqrt(
+                np.maximum(2.0 + 2.0 * vd, 1e-12))
+    if model in ("phong", "phong-classic"):
+        r = 2.0 * np.einsum("pk,pk->p", normals, views)[:, None] * normals - views  # mirror of v
+        return r.astype(np.float32) @ directions.astype(np.float32).T
+    raise ValueError(f"no specular lobe for model {model!r}")
+
+
+def lobe_norm(shininess: float, model: str) -> tuple[float, float]:
+    """The lobe's normalisation factor and its derivative with respect to n."""
+    if model == "blinn-phong":
+        return (shininess + 8) / (8 * np.pi), 1 / (8 * np.pi)
+    if model == "phong":
+        return (shininess + 2) / (2 * np.pi), 1 / (2 * np.pi)
+    return 1.0, 0.0
+
+
+def specular_factors(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap, model: str,
+                     texels: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of the specular transport that do not depend on n, for some texels.
+
+    S_ij = A_ij * lobe_norm(n) * c_ij^n, with A = V w max(0, N.d) (phong-classic: V w, the
+    paper's term has no cosine) and c = max(0, lobe_cosines); A is 0 wherever c or N.d is 0.
+
+    Returns (A, c): two (P, K) float32 arrays, K = the selected texels.
+    """
+    dirs = cube.directions[texels]
+    cos = facing(normals, dirs)
+    c = np.maximum(lobe_cosines(normals, views, dirs, model), 0.0)
+    c = np.nan_to_num(c, nan=0.0)
+    w = cube.solid_angles[texels].astype(np.float32)[None, :]
+    A = V * ((cos > 0) * w if model == "phong-classic" else cos * w)
+    A[c <= 0] = 0.0
+    return A.astype(np.float32, copy=False), c
+
+
+def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
+              material: Material) -> tuple[np.ndarray, np.ndarray | None]:
+    """Transport blocks for a set of pixels: the light texels' contributions per unit radiance.
+
+    The radiance of a texel is constant over it (that is what a texel value means), so its
+    diffuse contribution is V x the integral over the texel of max(0, N.d) / pi. That integral is
+    N . m_i with m_i the texel's vector solid angle (`CubeMap.vector_solid_angles`), exact for
+    texels wholly above the shading horizon and clamped at 0 for the few that straddle it: as
+    cheap as a texel-centre rule and exact where the centre rule is off by O(1/R^2). The specular
+    lobe is evaluated at the texel centre (w_i max(0, N.d_i) f(d_i), `specular_factors`). Visibility is per texel (V
+    may be a supersampled fraction).
+
+    Parameters
+    ----------
+    V : (P, N) float32 visibility in [0, 1].
+    normals, views : (P, 3) shading normals and unit directions to the camera.
+    cube : the texel layout.
+
+    Returns
+    -------
+    D : (P, N) float32 diffuse transport for kd = 1;
+    S : (P, N) float32 specular transport for ks = 1, or None for a Lambertian material.
+    """
+    D = diffuse_transport(V, normals, cube)
+    if not material.specular:
+        return D, None
+    return D, specular_transport(V, normals, views, cube, material)
+
+
+def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.ndarray:
+    """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi."""
+    D = facing(normals, cube.vector_solid_angles)
+    D *= V * np.float32(1.0 / np.pi)
+    return D
+
+
+def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
+                       material: Material) -> np.ndarray:
+    """(P, N) float32 the specular part of `transport` (ks = 1) for the material's model and n."""
+    S, c = specular_factors(V, normals, views, cube, material.model)
+    norm, _ = lobe_norm(material.shininess, material.model)
+    S *= np.power(c, np.float32(material.shininess)) * np.float32(norm)
+    return S
+
+
+def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048) -> np.ndarray:
+    """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3)."""
+    L = np.asarray(light, dtype=np.float64)
+    if L.ndim == 1:
+        L = np.repeat(L[:, None], 3, axis=1)
+    if L.shape != (vis.cube.n_texels, 3):
+        raise ValueError(f"light must have shape ({vis.cube.n_texels}, 3), got {np.shape(light)}")
+    kd = np.asarray(material.kd)
+    ks = np.asarray(material.ks)
+    out = np.zeros((vis.n_pixels, 3))
+    Lf = L.astype(np.float32)
+    s = vis.samples
+    for sl, V in vis.blocks(rows):
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
+        out[sl] = kd * (D @ Lf)
+        if S is not None:
+            out[sl] += ks * (S @ Lf)
+    return out
+
+
+def pixels_to_image(values: np.ndarray, pixels: np.ndarray, height: int, width: int,
+                    background: float | np.ndarray = 0.0) -> np.ndarray:
+    """Scatter per-pixel values ((P,) or (P, C)) into an (H, W[, C]) image."""
+    values = np.asarray(values)
+    img = np.empty((height, width) + values.shape[1:], dtype=np.float32)
+    img[...] = background
+    img[pixels[:, 0], pixels[:, 1]] = values
+    return img

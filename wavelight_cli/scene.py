@@ -1,0 +1,154 @@
+"""Where a scene folder keeps its files (README: Scene folder), the views of it, and loading the
+photo, the materials and the solved light with clear errors."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipelines.errors import InputError, require_file
+
+IMAGE_NAMES = ("image.exr", "image.hdr", "image.pfm", "image.tif", "image.tiff", "image.png",
+               "image.jpg", "image.jpeg")
+
+
+@dataclass(frozen=True)
+class SceneFiles:
+    root: Path
+
+    @property
+    def camera(self) -> Path:
+        return self.root / "camera.json"
+
+    @property
+    def pose(self) -> Path:
+        return self.root / "pose.json"
+
+    @property
+    def correspondences(self) -> Path:
+        return self.root / "correspondences.csv"
+
+    @property
+    def mask(self) -> Path | None:
+        p = self.root / "mask.png"
+        return p if p.exists() else None
+
+    @property
+    def image(self) -> Path | None:
+        for name in IMAGE_NAMES:
+            if (self.root / name).exists():
+                return self.root / name
+        return None
+
+    def require_image(self) -> Path:
+        path = self.image
+        if path is None:
+            raise InputError("no photo in the scene folder", self.root / "image.exr",
+                             f"add the photo as one of {', '.join(IMAGE_NAMES)}")
+        return path
+
+    @property
+    def mesh(self) -> Path:
+        from pipelines.io.scene_files import find_mesh
+
+        return find_mesh(self.root)
+
+    @property
+    def out(self) -> Path:
+        return self.root / "out"
+
+
+def scene_folder(path: str | Path) -> SceneFiles:
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError("scene folder not found", root, "pass an existing folder with --scene/-s")
+    return SceneFiles(root)
+
+
+def require(path: Path | None, fix: str) -> Path:
+    require_file(path, fix)
+    return Path(path)
+
+
+@dataclass(frozen=True)
+class View:
+    """A camera looking at the scene's mesh: the photo's own (camera.json, pose.json, mask.png) or
+    another one (relight --view). Each view has its own visibility results in the cache."""
+
+    camera: Path
+    pose: Path
+    mask: Path | None = None
+    name: str = "photo"
+
+
+def photo_view(scene: SceneFiles) -> View:
+    return View(scene.camera, scene.pose, scene.mask)
+
+
+def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> View:
+    """A view named by its files' contents (the same files are the same view)."""
+    camera = require(camera or scene.camera, "pass --view-camera or write camera.json")
+    pose = require(pose, "pass the new view's pose.json with --view")
+    digest = hashlib.sha256(camera.read_bytes() + b"\0" + pose.read_bytes()).hexdigest()[:10]
+    return View(camera, pose, None, f"view-{digest}")
+
+
+def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
+    """(path, `LoadedImage`) of the scene's photo, checked against the camera's size."""
+    from pipelines.io import images
+
+    path = scene.require_image()
+    img = images.read_image(path, linear=linear)
+    if (img.width, img.height) != (camera.width, camera.height):
+        raise InputError(f"image is {img.width}x{img.height} but camera.json says {camera.width}x{camera.height}",
+                         path, "use the photo the camera was calibrated for, or fix camera.json")
+    return path, img
+
+
+def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
+                          given: set | None = None):
+    """The material of --material/--model/--kd/--ks/--shininess; `given` (if a set) receives the
+    names of the fields the user set ('model', 'kd', 'ks', 'n', 'file')."""
+    from pipelines.model.materials import Material
+
+    data: dict = {}
+    if material_file is not None:
+        try:
+            data = json.loads(Path(material_file).read_text())
+        except (OSError, ValueError, UnicodeDecodeError) as exc:
+            raise InputError(f"cannot read material JSON ({exc})", material_file, "fix the file") from None
+        if not isinstance(data, dict):
+            raise InputError("a material must be a JSON object", material_file,
+                             'write e.g. {"model": "lambert", "kd": [0.8, 0.8, 0.8]}')
+    if model is not None:
+        data["model"] = model
+        data.pop("type", None)
+    if kd is not None:
+        data["kd"] = list(kd)
+    if ks is not None:
+        data["ks"] = list(ks)
+    if shininess is not None:
+        data["n"] = shininess
+    if given is not None:
+        given.update(k for k in ("kd", "ks") if k in data)
+        given.update({"model"} if "model" in data or "type" in data else set())
+        given.update({"n"} if "n" in data or "shininess" in data else set())
+        given.update({"file"} if material_file is not None else set())
+    try:
+        return Material.from_json(data)
+    except (ValueError, TypeError) as exc:
+        raise InputError(str(exc), material_file, "fix the material values") from None
+
+
+def solved_light(scene: SceneFiles):
+    """(texel light, its cube map, the file's attributes) of the light `solve` wrote."""
+    from pipelines.io.light_file import read_solution_light
+
+    path = require(scene.out / "coefficients.h5", "run wavelight solve first (or pass --light)")
+    try:
+        return read_solution_light(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"cannot read the solved light ({str(exc).splitlines()[0]})", path,
+                         "rerun wavelight solve --force") from None

@@ -1,0 +1,47 @@
+"""`wavelight check`: validate every file the scene folder has, writing nothing."""
+
+from __future__ import annotations
+
+from pipelines.controllers.visibility import VisibilityOptions
+from pipelines.errors import InputError
+
+from ..scene import SceneFiles, load_photo, photo_view, require
+from .visibility import load_samples
+
+
+def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
+    """One summary line per file of the scene folder; bad files raise InputError."""
+    from pipelines.io import images
+    from pipelines.io.scene_files import load_mesh, read_camera, read_correspondences, read_pose
+
+    lines = []
+    camera = read_camera(require(scene.camera, "write camera.json or run wavelight calibrate"))
+    lines.append(f"camera.json: {camera.width}x{camera.height}, fx {camera.fx:g}, fy {camera.fy:g}")
+    if scene.image is not None:
+        path, img = load_photo(scene, camera)
+        depth = "float" if img.bit_depth == "float" else f"{img.bit_depth}-bit"
+        lines.append(f"{path.name}: {img.width}x{img.height}, {depth}, {int(img.saturated.sum())} saturated pixels")
+    else:
+        lines.append("photo: none (needed by solve)")
+    if scene.correspondences.exists():
+        uv, _ = read_correspondences(scene.correspondences)
+        lines.append(f"correspondences.csv: {len(uv)} points")
+    mesh = load_mesh(scene.mesh)
+    lines.append(f"{scene.mesh.name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces"
+                 + (f" ({'; '.join(mesh.notes)})" if mesh.notes else ""))
+    if scene.mask is not None:
+        mask = images.read_mask(scene.mask)
+        if mask.shape != (camera.height, camera.width):
+            raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, camera.json says "
+                             f"{camera.width}x{camera.height}", scene.mask, "use a mask of the photo's size")
+        if not mask.any():
+            raise InputError("mask is empty (no white pixel)", scene.mask, "paint the pixels to use white")
+        lines.append(f"mask.png: {int(mask.sum())} pixels")
+    if scene.pose.exists():
+        read_pose(scene.pose)
+        opts.check()
+        *_, diag = load_samples(scene, opts, photo_view(scene))
+        lines.append(f"pose.json: {diag['used']} used pixels of {diag['hit']} that see the mesh")
+    else:
+        lines.append("pose.json: none (run wavelight register)")
+    return lines

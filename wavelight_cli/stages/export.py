@@ -1,0 +1,79 @@
+"""`wavelight export`: the recovered (or a given) light in other tools' conventions -> out/export/."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipelines.errors import InputError
+
+from ..cache import Ran, SceneCache, Stage, run_stage
+from ..console import Console
+from ..outputs import write_json
+from ..scene import SceneFiles, require, solved_light
+
+VERSION = 2
+FORMATS = ("mitsuba", "blender", "opengl")
+
+
+def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path | None, height: int | None,
+                 face_size: int | None, console: Console, force: bool = False, lock_wait: float = 600.0):
+    from pipelines.io import exports as ex
+    from pipelines.io import images
+    from pipelines.io.files import atomic_output
+    from pipelines.light import cubemap
+
+    if height is not None and not 8 <= height <= 8192:
+        raise InputError(f"--height must be 8..8192 rows, got {height}", None, "e.g. --height 256")
+    if face_size is not None and (face_size < 2 or face_size > 4096 or face_size & (face_size - 1)):
+        raise InputError(f"--face-size must be a power of two from 2 to 4096, got {face_size}", None, "e.g. 64")
+    if light_path is not None and height is not None:
+        raise InputError("--height applies to the recovered light; a --light file keeps its own rows", None,
+                         "drop --height (or resample the file)")
+    source = light_path if light_path is not None else scene.out / "coefficients.h5"
+    require(source, "run wavelight solve first, or pass --light")
+    cache = SceneCache(scene.root)
+    out = scene.out / "export"
+    with cache.lock(lock_wait, console.say):
+        upstream = {} if light_path is not None else {"solve": cache.key_of("solve") or "none"}
+        stage = Stage("export", VERSION, {"formats": list(formats), "height": height, "face_size": face_size},
+                      {"light": source}, upstream)
+
+        def work(d) -> Ran:
+            if light_path is not None:
+                env = images.read_latlong(light_path)  # lat-long exports keep its resolution
+                cube = cubemap.CubeMap(face_size or 64, hemisphere=False)
+                texels = cubemap.latlong_to_cube(env, cube)
+            else:
+                texels, cube, _ = solved_light(scene)
+                env = cubemap.cube_to_latlong(texels, cube, height or max(64, 4 * cube.resolution))
+                if face_size is not None and face_size != cube.resolution:
+                    target = cubemap.CubeMap(face_size, cube.hemisphere)
+                    texels, cube = cubemap.resample_cube(texels, cube, target), target
+            outputs: list[Path] = []
+            omega = cubemap.latlong_solid_angles(env.shape[0])[..., None]
+            summary = {"source": "recovered" if light_path is None else str(light_path),
+                       "energy_rgb": (env * omega).sum(axis=(0, 1)).tolist(), "latlong_height": env.shape[0],
+                       "face_size": cube.resolution}
+            if "mitsuba" in formats:
+                outputs.append(images.write_exr(out / "mitsuba" / "light.exr", ex.to_mitsuba(env)))
+                xml = out / "mitsuba" / "emitter.xml"
+                with atomic_output(xml) as tmp:
+                    tmp.write_text(ex.mitsuba_xml("light.exr"))
+                outputs.append(xml)
+            if "blender" in formats:
+                outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
+            if "opengl" in formats:
+                for name, face in ex.to_gl_faces(texels, cube).items():
+                    outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
+            outputs.append(write_json(out / "export.json", {
+                **summary, "files": [cache.relative(p) for p in outputs],
+                "conventions": "README: Relight, insert, export, report (export) and pipelines/io/exports.py"}))
+            summary["line"] = (f"export: {', '.join(formats)} -> {cache.relative(out)}/ "
+                               f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])})")
+            return Ran(outputs, summary)
+
+        d = run_stage(cache, stage, console, force, work)
+        rec = cache.record_of("export") or {}
+    if "line" in rec.get("summary", {}):
+        console.result(rec["summary"]["line"])
+    return d

@@ -1,0 +1,160 @@
+"""`wavelight relight`: the scene under the recovered (or any lat-long) light, from the photo's view
+or another one, with the fitted (or given) reflectance -> out/NAME.exr/png, NAME.json and the error
+against the photo or a reference image."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipelines.controllers.visibility import VisibilityOptions
+from pipelines.errors import InputError
+
+from ..cache import Ran, SceneCache, Stage, run_stage
+from ..console import Console
+from ..outputs import write_json, write_residual
+from ..scene import SceneFiles, load_photo, other_view, photo_view, require, solved_light
+from .visibility import visibility_stage
+
+VERSION = 2
+
+
+@dataclass(frozen=True)
+class RelightOptions:
+    light: Path | None = None  # a lat-long light; None = the light `solve` recovered
+    rotate: float = 0.0  # degrees about +Z (phi -> phi + rotate)
+    light_exposure: float = 0.0  # stops: the light is multiplied by 2**light_exposure
+    view_pose: Path | None = None  # another view: its pose.json
+    view_camera: Path | None = None  # and its camera.json (default: the scene's)
+    reference: Path | None = None  # an image to compare with (default: the photo, for its own view and light)
+    reference_mask: Path | None = None  # where to compare (white = compare)
+    exposure: float | None = None  # PNG exposure in stops (None = automatic)
+    name: str = "relight"
+
+    def check(self) -> None:
+        if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
+            raise InputError(f"--name must be letters, digits, - or _, got {self.name!r}", None, "e.g. --name sunset")
+        if not np.isfinite(self.rotate) or not np.isfinite(self.light_exposure):
+            raise InputError("--rotate and --light-exposure must be finite numbers", None, "fix the option")
+        if self.view_camera is not None and self.view_pose is None:
+            raise InputError("--view-camera needs --view (the new view's pose.json)", None, "add --view POSE.json")
+
+
+def _light(scene: SceneFiles, opts: RelightOptions, cube):
+    """(N, 3) texel radiance on `cube`, and a description."""
+    from pipelines.io import images
+    from pipelines.light import cubemap
+
+    if opts.light is not None:
+        env = images.read_latlong(require(opts.light, "pass a lat-long EXR/HDR with --light"))
+        env = cubemap.rotate_latlong(env, opts.rotate) * 2.0 ** opts.light_exposure
+        return cubemap.latlong_to_cube(env, cube), str(opts.light)
+    texels, sol_cube, _ = solved_light(scene)
+    light = cubemap.resample_cube(texels, sol_cube, cube, opts.rotate)
+    return light * 2.0 ** opts.light_exposure, "recovered"
+
+
+def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightOptions, material, material_path,
+                  console: Console, force: bool = False, lock_wait: float = 600.0):
+    from pipelines.controllers.render import render_view
+    from pipelines.geometry import raycast
+    from pipelines.io import images, visibility_file
+    from pipelines.io.scene_files import load_mesh, read_camera
+    from pipelines.metrics import versus_photo
+    from pipelines.model import render as rd
+
+    opts.check()
+    if opts.light is not None:
+        require(opts.light, "pass a lat-long EXR/HDR with --light")
+    else:
+        require(scene.out / "coefficients.h5", "run wavelight solve first, or pass --light")
+    for path in (opts.reference, opts.reference_mask):
+        if path is not None:
+            require(path, "check the path")
+    view = photo_view(scene) if opts.view_pose is None else other_view(scene, opts.view_pose, opts.view_camera)
+    camera = read_camera(require(view.camera, "write camera.json or run wavelight calibrate"))
+    reference = opts.reference
+    same_light = opts.light is None and opts.rotate % 360 == 0 and opts.light_exposure == 0
+    if reference is None and opts.view_pose is None and same_light:
+        reference = scene.image  # the photo's own view and light: how well the model explains the photo
+    mask_path = opts.reference_mask
+    if mask_path is not None and reference is None:
+        raise InputError("--reference-mask needs a reference (the photo is one only for its own view and light)",
+                         None, "add --reference IMAGE")
+    cache = SceneCache(scene.root)
+    name = "relight" if opts.name == "relight" else f"relight-{opts.name}"
+    out = scene.out
+    with cache.lock(lock_wait, console.say):
+        vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait, view=view)
+        upstream = {vis.stage: vis.key}
+        if opts.light is None:
+            upstream["solve"] = cache.key_of("solve") or "none"
+        inputs = {"light": opts.light if opts.light is not None else scene.out / "coefficients.h5",
+                  "material": material_path, "reference": reference, "reference_mask": mask_path}
+        params = {"rotate": opts.rotate, "light_exposure": opts.light_exposure, "material": material.to_json(),
+                  "view": view.name}
+        stage = Stage(name, VERSION, params, inputs, upstream, {"exposure": opts.exposure})
+
+        def work(d) -> Ran:
+            ref_path = ref = mask = None  # read and checked before anything is written
+            if reference is not None:
+                if opts.view_pose is None and reference == scene.image:
+                    ref_path, ref = load_photo(scene, camera)
+                else:
+                    ref_path, ref = Path(reference), images.read_image(reference)
+                    if (ref.width, ref.height) != (camera.width, camera.height):
+                        raise InputError(f"reference is {ref.width}x{ref.height}, the view's camera is "
+                                         f"{camera.width}x{camera.height}", ref_path, "pass the image taken from that view")
+                if mask_path is not None:
+                    mask = images.read_mask(mask_path)
+                    if mask.shape != (camera.height, camera.width):
+                        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, the view is "
+                                         f"{camera.width}x{camera.height}", mask_path, "use a mask of the view's size")
+            data = visibility_file.read_visibility(vis.path)
+            light, source = _light(scene, opts, data.cube)
+            values, _ = render_view(data, light, material, raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend))
+            img = rd.pixels_to_image(values, data.samples.pixel, camera.height, camera.width)
+            outputs = [images.write_exr(out / f"{opts.name}.exr", img),
+                       images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+            summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
+                       "view": view.name, "material": material.to_json(), "pixels": int(len(values)),
+                       "resolution": data.cube.resolution}
+            residual = out / f"{opts.name}_residual.png"
+            if ref is not None:
+                px = data.samples.pixel
+                keep = np.ones(len(values), bool) if mask is None else mask[px[:, 0], px[:, 1]]
+                usable = keep & ~ref.saturated[px[:, 0], px[:, 1]]
+                reference_values = ref.pixels[px[:, 0], px[:, 1]]
+                outputs.append(write_residual(residual, values, reference_values, px, (camera.height, camera.width),
+                                              usable))
+                summary.update(versus_photo(values, reference_values, usable), reference=str(ref_path),
+                               reference_mask=str(mask_path) if mask_path else None)
+            else:
+                from pipelines.io.files import output_set
+
+                with output_set() as files:
+                    files.discard(residual)  # it belonged to an earlier comparison
+            outputs.append(write_json(out / f"{opts.name}.json", summary))
+            what = "recovered light" if source == "recovered" else Path(source).name
+            if opts.rotate:
+                what += f" turned {opts.rotate:g} deg"
+            if opts.light_exposure:
+                what += f" {opts.light_exposure:+g} stops"
+            line = f"relight: {what}, {'photo view' if view.name == 'photo' else view.name}, {len(values)} pixels"
+            if ref is not None:
+                line += (f": relative RMSE vs {Path(summary['reference']).name} "
+                         f"{100 * summary['relative_rmse_vs_photo']:.2f} % over {summary['compared_pixels']} pixels")
+            summary["line"] = line + f" -> {cache.relative(outputs[1])}"
+            return Ran(outputs, summary)
+
+        def redisplay() -> list:
+            img = images.read_image(out / f"{opts.name}.exr").pixels
+            return [images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+
+        d = run_stage(cache, stage, console, force, work, redisplay)
+        rec = cache.record_of(name) or {}
+    if "line" in rec.get("summary", {}):
+        console.result(rec["summary"]["line"])
+    return d
