@@ -96,8 +96,10 @@ def main():
                                                   query="OCCLUDED"), range(args.threads)))
                 seconds += time.perf_counter() - t0
     else:
-        from wavelight_cli.scenefiles import SceneFiles
-        from wavelight_cli.stages import Console, VisibilityOptions, visibility_stage
+        from wavelight_cli.scene import SceneFiles
+        from wavelight_cli.console import Console
+        from pipelines.controllers.visibility import VisibilityOptions
+        from wavelight_cli.stages.visibility import visibility_stage
 
         with tempfile.TemporaryDirectory() as tmp:
             work = Path(tmp) / "scene"

@@ -391,8 +391,133 @@ def scaling_section(repeats: int) -> list[str]:
     return lines
 
 
+
+E2E_CONFIGS = [("spot_sun", 1, 32), ("spot_overcast", 1, 32), ("bunny_sun", 1, 32), ("teapot_sun_phong", 1, 32),
+               ("spot_overcast", 2, 32), ("bunny_sun", 2, 32), ("spot_overcast", 1, 64), ("bunny_sun", 1, 64)]
+
+
+def _scene_dir(name: str) -> Path:
+    return ROOT / "sample_data" / name if name == "spot_sun" else ROOT / "tests" / "data" / "scenes" / name
+
+
+def e2e_section(repeats: int) -> list[str]:
+    """The whole `wavelight solve` with its defaults, from an empty cache (issue 15)."""
+    work = ROOT / "build" / "bench_e2e"
+    fast: dict = {c: [] for c in E2E_CONFIGS}
+    for _ in range(repeats):  # interleaved: every configuration once per round
+        for c in E2E_CONFIGS:
+            name, scale, R = c
+            args = [str(_scene_dir(name)), str(work), "--scale", str(scale), "--resolution", str(R)]
+            fast[c].append(measure(args, "bench_e2e.py"))
+            print(f"e2e {c}: {fast[c][-1]['seconds']:.2f} s", flush=True)
+    exact = {}
+    for name in ("spot_sun", "spot_overcast", "bunny_sun", "teapot_sun_phong"):
+        exact[name] = measure([str(_scene_dir(name)), str(work), "--exact"], "bench_e2e.py")
+        print(f"e2e exact {name}: {exact[name]['seconds']:.1f} s", flush=True)
+    peer = {}
+    try:
+        import mitsuba as mi
+
+        mi.set_variant("llvm_ad_rgb")
+        for name in ("spot_overcast", "bunny_sun"):
+            peer[name] = measure([str(_scene_dir(name)), str(work / "peer" / name), "--skip-wavelight"],
+                                 "bench_mitsuba.py")["mitsuba"]
+    except Exception as exc:  # not installed, or its LLVM variant lacks libLLVM
+        peer_note = f"the peer was not run: Mitsuba 3's llvm_ad_rgb variant is not available ({str(exc).splitlines()[0]})"
+    else:
+        peer_note = ""
+    med = {c: statistics.median(r["seconds"] for r in runs) for c, runs in fast.items()}
+
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.2f} %"
+
+    lines = ["## Whole solve, defaults, from an empty cache (e2e, issue 15)", "",
+             "`wavelight -s SCENE solve` (R = 32, `--levels auto`, `--reflectance auto`, adaptive visibility, the "
+             "weighted pixel sample) on a copy of each scene without its truth, in a fresh process, from an empty "
+             "cache: the whole command's wall time (process start, visibility, the solve, every output) and its "
+             f"peak resident memory. {repeats} runs per configuration, interleaved; min / median / max. "
+             "*exact*: the same command with `--exact` (every shadow ray, dense normal equations over every pixel: "
+             "the route before this one), once. x2: the camera scaled to 640 x 480 (photo and mask repeated 2 x 2). "
+             "Probe errors: a matte and a glossy sphere relit by the recovered and by the true light "
+             "(scale-invariant). Sun: angle of the brightest region's energy centroid to the truth's dominant "
+             "direction.", "",
+             "| scene | size | R | seconds (min / med / max) | peak MB | held-out | probes matte / glossy | sun | "
+             "reflectance | exact: seconds | exact: held-out | exact: probes | exact: sun | exact: reflectance |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def refl(r):
+        if r["model"] == "lambert":
+            return "lambert"
+        return f"{r['model']} ks/kd {r['ks_over_kd']:.3f}, n {r['n']:.1f}"
+
+    def probes(r):
+        return "-" if not r.get("probes") else f"{pct(r['probes']['diffuse'])} / {pct(r['probes']['glossy'])}"
+
+    def sun(r):
+        return "-" if r.get("sun_error_deg") is None else f"{r['sun_error_deg']:.2f} deg"
+
+    for c in E2E_CONFIGS:
+        name, scale, R = c
+        runs, first = fast[c], fast[c][0]
+        e = exact.get(name) if scale == 1 and R == 32 else None
+        size = f"{320 * scale}x{240 * scale}" if name != "spot_sun" else "192x144"
+        lines.append(f"| {name} | {size} | {R} | {spread([r['seconds'] for r in runs])} | "
+                     f"{max(r['peak_rss_mb'] for r in runs):.0f} | {pct(first['held_out'])} | {probes(first)} | "
+                     f"{sun(first)} | {refl(first)} | "
+                     + (f"{e['seconds']:.1f} | {pct(e['held_out'])} | {probes(e)} | {sun(e)} | {refl(e)} |" if e else
+                        "| | | | |"))
+    goals = []
+    lam = [("spot_sun", 1, 32), ("spot_overcast", 1, 32), ("bunny_sun", 1, 32)]
+    worst = max(med[c] for c in lam)
+    goals.append((f"320x240 Lambertian scenes <= 3 s (aim 1.5 s): {'met' if worst <= 3 else 'NOT met'} — medians "
+                  + ", ".join(f"{c[0]} {med[c]:.2f} s" for c in lam)))
+    for name in ("spot_overcast", "bunny_sun"):
+        if name in peer:
+            t_peer = peer[name]["curve"][-1][0]
+            ratio = t_peer / med[(name, 1, 32)]
+            goals.append(f"{name} >= 10x faster than the Mitsuba peer in the same run: {'met' if ratio >= 10 else 'NOT met'}"
+                         f" — {ratio:.1f}x ({t_peer:.0f} s for its 300 iterations, best light error "
+                         f"{100 * min(x[2] for x in peer[name]['curve']):.1f} %, against wavelight's median "
+                         f"{med[(name, 1, 32)]:.2f} s)")
+    t = med[("teapot_sun_phong", 1, 32)]
+    goals.append(f"teapot_sun_phong (glossy, auto) <= 10 s: {'met' if t <= 10 else 'NOT met'} — {t:.2f} s")
+    for name in ("spot_overcast", "bunny_sun"):
+        ratio = med[(name, 2, 32)] / med[(name, 1, 32)]
+        goals.append(f"{name} at 640x480 <= 1.5x its 320x240 time: {'met' if ratio <= 1.5 else 'NOT met'} — "
+                     f"{ratio:.2f}x ({med[(name, 2, 32)]:.2f} s)")
+        ratio64 = med[(name, 1, 64)] / med[(name, 1, 32)]
+        peak64 = max(r["peak_rss_mb"] for r in fast[(name, 1, 64)])
+        goals.append(f"{name} at R = 64 <= 4 GB and <= 4x the R = 32 time: "
+                     f"{'met' if ratio64 <= 4 and peak64 <= 4096 else 'NOT met'} — {ratio64:.2f}x, {peak64:.0f} MB")
+    peak32 = max(r["peak_rss_mb"] for c in E2E_CONFIGS if c[2] == 32 for r in fast[c])
+    goals.append(f"peak memory <= 1 GB at R = 32: {'met' if peak32 <= 1024 else 'NOT met'} — {peak32:.0f} MB")
+    acc = []
+    for name, e in exact.items():
+        f = fast[(name, 1, 32)][0]
+        ok_held = f["held_out"] <= 1.05 * e["held_out"]
+        ok_probe = all(f["probes"][k] <= 1.10 * e["probes"][k] for k in f["probes"]) if f.get("probes") and e.get("probes") else True
+        angle = float(np.degrees(np.arccos(np.clip(np.dot(f["brightest"], e["brightest"]), -1, 1))))
+        ok_sun = angle <= 1.0 if f.get("sun_error_deg") is not None else True
+        ok_refl = True
+        if e["model"] != "lambert" or f["model"] != "lambert":
+            ok_refl = (f["model"] == e["model"] and abs(f["ks_over_kd"] / e["ks_over_kd"] - 1) <= 0.05
+                       and abs(f["n"] / e["n"] - 1) <= 0.05)
+        acc.append((name, ok_held and ok_probe and ok_sun and ok_refl,
+                    f"{name}: held-out {100 * (f['held_out'] / e['held_out'] - 1):+.1f} %"
+                    + ("" if not f.get("probes") or not e.get("probes") else
+                       f", probes {100 * (f['probes']['diffuse'] / e['probes']['diffuse'] - 1):+.1f} % / "
+                       f"{100 * (f['probes']['glossy'] / e['probes']['glossy'] - 1):+.1f} %")
+                    + (f", sun {angle:.2f} deg from exact's" if f.get("sun_error_deg") is not None else "")
+                    + ("" if e["model"] == "lambert" and f["model"] == "lambert" else
+                       f", ks/kd {100 * (f['ks_over_kd'] / e['ks_over_kd'] - 1):+.1f} %, n {100 * (f['n'] / e['n'] - 1):+.1f} %")))
+    goals.append(f"accuracy no worse than the exact route (held-out within 5 %, probes within 10 %, sun within 1 deg, "
+                 f"ks and n within 5 %): {'met' if all(a[1] for a in acc) else 'NOT met'} — " + "; ".join(a[2] for a in acc))
+    lines += [""] + ([f"Note: {peer_note}.", ""] if peer_note else [])
+    lines += [f"**Goal** {g}." for g in goals] + [""]
+    return lines
+
 SECTIONS = {"visibility": visibility_section, "solve": solve_section, "reflectance": reflectance_section,
-            "peer": peer_section, "bases": bases_section, "scaling": scaling_section}
+            "peer": peer_section, "bases": bases_section, "scaling": scaling_section, "e2e": e2e_section}
 
 
 def _existing_sections(path: Path) -> dict[str, str]:

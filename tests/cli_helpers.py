@@ -25,6 +25,17 @@ from wavelight_cli.main import cli
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "sample_data" / "spot_sun"
 RES = "8"  # light resolution for fast runs (3 * 8^2 = 192 directions)
+VIS_STAGE = f"visibility/photo/R{RES}"  # the photo view's visibility at RES (the cache's stage name)
+VIS_H5 = f".wavelight/visibility/photo-R{RES}.h5"  # ... and its file
+
+
+def vis_stage(resolution=RES, slot: str = "") -> str:
+    """The cache's name of the photo view's visibility at a resolution (`slot`: more options, e.g. "-exact")."""
+    return f"visibility/photo/R{resolution}{slot}"
+
+
+def vis_file(scene: Path, resolution=RES, slot: str = "") -> Path:
+    return scene / ".wavelight" / "visibility" / f"photo-R{resolution}{slot}.h5"
 
 
 def wavelight_exe() -> str:
@@ -84,9 +95,10 @@ def stage_lines(text: str, stage: str) -> list[str]:
 
 
 def decision_line(text: str, stage: str) -> str:
-    """The one `stage: running (...)` / `stage: skipped, ...` line of a run."""
+    """The one `stage: running (...)` / `stage: skipped, ...` / `stage: redrawing the previews (...)`
+    line of a run."""
     lines = [ln for ln in stage_lines(text, stage)
-             if ln.startswith(f"{stage}: running (") or ln.startswith(f"{stage}: skipped, ")]
+             if ln.startswith((f"{stage}: running (", f"{stage}: skipped, ", f"{stage}: redrawing the previews ("))]
     assert len(lines) == 1, f"expected one decision line for {stage}, got {lines}\n{text}"
     return lines[0]
 
@@ -157,7 +169,7 @@ def baseline_scene(tmp_path_factory) -> Path:
         scene = copy_sample(tmp_path_factory.mktemp("baseline") / "scene")
         ok(invoke(scene, "visibility", "--resolution", RES))
         ok(invoke(scene, *render_args(scene)))
-        assert (scene / ".wavelight" / "visibility.h5").is_file()
+        assert vis_file(scene).is_file()
         assert (scene / "out" / "render.exr").is_file()
         _BASELINE["scene"] = scene
     return _BASELINE["scene"]
@@ -179,7 +191,7 @@ def assert_one_error_line(result, culprit: str, quiet: bool) -> str:
         assert err == [line], f"with -q only the error line may be printed:\n{result.stderr}"
         assert result.stdout == "", f"a failed run printed results:\n{result.stdout}"
     else:  # the other lines are the stages' progress (`stage: ...`)
-        assert all(re.match(r"^[a-z]+: ", ln) for ln in err[:-1]), result.stderr
+        assert all(re.match(r"^[a-z][A-Za-z0-9/_-]*: ", ln) for ln in err[:-1]), result.stderr
     assert culprit in line, f"the error must name {culprit!r}: {line}"
     assert "\n" not in line
     return line

@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from cli_helpers import RES, copy_sample, h5_arrays, manifest, sha256, wavelight_exe
-
+from cli_helpers import (RES, copy_sample, h5_arrays, manifest, sha256, wavelight_exe, VIS_STAGE, VIS_H5)
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")
@@ -121,7 +120,7 @@ def test_batch_rerun_skips_finished_stages(solved_batch):
     assert set(ok_markers) == {str(s) for s in scenes}
     for scene in scenes:
         log = log_of(ok_markers[str(scene)])  # the logs keep the stage lines (no -q)
-        assert "visibility: skipped, up to date" in log, log
+        assert f"{VIS_STAGE}: skipped, up to date" in log, log
         assert "solve: skipped, up to date" in log, log
         assert "Traceback" not in log
         assert (sha256(scene / "out" / "coefficients.h5"), manifest(scene)) == before[scene]
@@ -134,14 +133,16 @@ def test_batch_resumes_after_interrupt(tmp_path, solved_batch):
     batch = tmp_path / "batch"
     # Ctrl-C must reach make and wavelight even when this test runs in the background (a
     # non-interactive shell starts background jobs with SIGINT ignored, and children inherit that)
-    proc = make_batch([scene], batch, start_new_session=True,
+    exact = "WAVELIGHT_ARGS=--visibility exact"  # the exact method runs in resumable chunks
+    stage = f"{VIS_STAGE}-exact"
+    proc = make_batch([scene], batch, exact, start_new_session=True,
                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         logs = []
         while time.monotonic() < deadline and proc.poll() is None:
             logs = list(batch.glob("*.log"))  # a progress line: at least one chunk is on disk
-            if logs and "visibility: [" in logs[0].read_text():
+            if logs and f"{stage}: casting [" in logs[0].read_text():
                 break
             time.sleep(0.02)
         assert proc.poll() is None, "the batch ended before it could be interrupted"
@@ -155,14 +156,15 @@ def test_batch_resumes_after_interrupt(tmp_path, solved_batch):
     assert not list(batch.glob("*.ok")), "an interrupted scene must not be marked done"
     assert not (batch / "summary.txt").exists()
 
-    again = make_batch([scene], batch)
+    again = make_batch([scene], batch, exact)
     assert again.returncode == 0, again.stdout + again.stderr
     (marker,) = markers(batch, "ok").values()
     log = log_of(marker)
-    assert "visibility: resuming" in log or "visibility: skipped, up to date" in log, log
+    assert f"{stage}: resuming" in log or f"{stage}: skipped, up to date" in log, log
     assert "Traceback" not in log
     assert_solved(scene)
-    # no damage: the same numbers as an uninterrupted run
-    reference = solved_batch[0][0]
-    for rel in (".wavelight/visibility.h5", "out/coefficients.h5"):
+    # no damage: the same numbers as an uninterrupted run of the same command
+    reference = copy_sample(tmp_path / "reference")
+    assert make_batch([reference], tmp_path / "reference_batch", exact).returncode == 0
+    for rel in (".wavelight/visibility/photo-R8-exact.h5", "out/coefficients.h5"):
         assert h5_arrays(scene / rel) == h5_arrays(reference / rel), rel

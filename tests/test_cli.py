@@ -11,19 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli_helpers import (
-    assert_one_error_line,
-    RES,
-    copy_sample,
-    copy_scene,
-    decision_line,
-    invoke,
-    manifest,
-    ok,
-    render_args,
-    snapshot,
-    wavelight_exe,
-)
+from cli_helpers import (assert_one_error_line, RES, copy_sample, copy_scene, decision_line, invoke, manifest, ok, render_args, snapshot, wavelight_exe, VIS_STAGE, VIS_H5, vis_file, vis_stage)
 from wavelight_cli.main import cli
 
 
@@ -262,7 +250,7 @@ def _params(cases):
 @pytest.mark.parametrize("mutate, command, culprit", _params(BAD_INPUT))
 def test_bad_input_one_error_line_and_cache_untouched(scene, mutate, command, culprit):
     before = snapshot(scene)
-    assert ".wavelight/visibility.h5" in before and "out/render.exr" in before
+    assert VIS_H5 in before and "out/render.exr" in before
     mutate(scene)
     args = command(scene)
     line = assert_one_error_line(invoke(scene, *args), culprit(scene), quiet=False)
@@ -343,7 +331,7 @@ def test_missing_photo_is_reported_by_check_and_render_still_works(scene):
     # render needs no photo (it then has nothing to compare against)
     result = invoke(scene, *render_args(scene))
     err = ok(result)
-    assert "visibility: skipped, up to date" in err
+    assert f"{VIS_STAGE}: skipped, up to date" in err
     assert decision_line(err, "render").startswith("render: running (input changed: photo")
     assert "relative RMSE" not in result.output
     rec = manifest(scene)["stages"]["render"]
@@ -375,23 +363,23 @@ def test_scene_toml_visibility_section_sets_defaults_of_visibility_and_render(tm
     (scene / "scene.toml").write_text("[visibility]\nresolution = 8\n")
     err = ok(invoke(scene, "visibility"))
     assert "R=8" in err
-    vis = manifest(scene)["stages"]["visibility"]
+    vis = manifest(scene)["stages"][VIS_STAGE]
     assert vis["params"]["resolution"] == 8
     import h5py
 
-    with h5py.File(scene / ".wavelight" / "visibility.h5", "r") as f:
+    with h5py.File(vis_file(scene), "r") as f:
         assert int(f.attrs["resolution"]) == 8
         assert int(f.attrs["n_texels"]) == 3 * 8 * 8
     err = ok(invoke(scene, "render", "--light", scene / "truth" / "env_latlong.exr"))
     # render used resolution 8 too: the visibility it needs is the one just made
-    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")
     assert decision_line(err, "render") == "render: running (no previous run)"
     m = manifest(scene)["stages"]
-    assert m["visibility"]["params"]["resolution"] == 8
-    assert m["render"]["upstream"] == {"visibility": m["visibility"]["key"]}
+    assert m[VIS_STAGE]["params"]["resolution"] == 8
+    assert m["render"]["upstream"] == {VIS_STAGE: m[VIS_STAGE]["key"]}
     # an explicit option still wins over scene.toml
     err = ok(invoke(scene, "visibility", "--resolution", "16"))
-    assert decision_line(err, "visibility") == "visibility: running (params changed: resolution 8 -> 16)"
+    assert decision_line(err, vis_stage(16)) == f"{vis_stage(16)}: running (no previous run)"
 
 
 def test_scene_toml_accepts_cli_option_names(scene):
@@ -399,7 +387,7 @@ def test_scene_toml_accepts_cli_option_names(scene):
     result = invoke(scene, "status")
     ok(result)
     err = ok(invoke(scene, "visibility"))
-    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")
 
 
 # -- check --------------------------------------------------------------------------------------
@@ -419,7 +407,7 @@ def test_check_sample_scene(baseline, tmp_path):
     used, hit = int(m.group(1)), int(m.group(2))
     assert 10_000 < used < hit < 192 * 144
     # the count is the one the visibility stage uses (same default edge margin)
-    vis = manifest(scene)["stages"]["visibility"]["summary"]
+    vis = manifest(scene)["stages"][VIS_STAGE]["summary"]
     assert (used, hit) == (vis["used"], vis["hit"])
     assert out.rstrip().splitlines()[-1] == f"{scene}: ok"
     assert snapshot(scene) == before  # check writes nothing

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import RES, copy_sample, decision_line, h5_arrays, invoke, ok
+from cli_helpers import (RES, copy_sample, decision_line, h5_arrays, invoke, ok, VIS_STAGE, vis_file)
 from pipelines.light import cubemap
 from pipelines.io import images
 from pipelines.light import solution as lt
@@ -185,7 +185,7 @@ def test_scene_far_from_origin_gives_the_same_shadows(tmp_path):
     far = _offset_scene(near, tmp_path / "far", (1e6, -1e6, 1e6))
     for s in (near, far):
         ok(invoke(s, "visibility", "--resolution", RES))
-    a, b = (h5_arrays(s / ".wavelight" / "visibility.h5") for s in (near, far))
+    a, b = (h5_arrays(vis_file(s)) for s in (near, far))
     assert a["visibility"] == b["visibility"]
     assert a["pixels/pixel"] == b["pixels/pixel"]
 
@@ -222,8 +222,8 @@ def test_mesh_repairs_are_noted_and_change_nothing(tmp_path, damage, note):
     (scene / "mesh.obj").write_text("\n".join(lines) + "\n")
     err = ok(invoke(scene, "visibility", "--resolution", RES))
     assert note in err, err
-    assert decision_line(err, "visibility") == "visibility: running (no previous run)"
-    a, b = (h5_arrays(s / ".wavelight" / "visibility.h5") for s in (clean, scene))
+    assert decision_line(err, VIS_STAGE) == f"{VIS_STAGE}: running (no previous run)"
+    a, b = (h5_arrays(vis_file(s)) for s in (clean, scene))
     assert a["visibility"] == b["visibility"]
 
 

@@ -34,16 +34,17 @@ def insertion(tmp_path_factory):
     root = tmp_path_factory.mktemp("insert")
     src = SCENES / "bunny_sun"
     truth = ["--light", str(src / "truth" / "env_latlong.exr"), "--material", str(src / "truth" / "material.json")]
+    exact = ["--visibility", "exact"]  # every ray, on both sides of the comparison
     a = shutil.copytree(src, root / "a", ignore=shutil.ignore_patterns("mask*.png"))
-    ok(invoke(a, "render", "-R", RES, *truth))
+    ok(invoke(a, "render", "-R", RES, *truth, *exact))
     b = shutil.copytree(src, root / "b", ignore=shutil.ignore_patterns("mask*.png", "mesh.ply"))
     sphere = ins.place(ins.sphere(RADIUS), AT)
     _write_obj(b / "mesh.obj", ins.combine(load_mesh(src / "mesh.ply"), sphere))
-    ok(invoke(b, "render", "-R", RES, *truth))
+    ok(invoke(b, "render", "-R", RES, *truth, *exact))
     c = shutil.copytree(src, root / "c", ignore=shutil.ignore_patterns("mask*.png"))
     shutil.copy(a / "out" / "render.exr", c / "image.exr")
     ok(invoke(c, "insert", "--at", *map(str, AT), "--radius", str(RADIUS), "-R", RES, "--object-material",
-              str(src / "truth" / "material.json"), *truth))
+              str(src / "truth" / "material.json"), *truth, *exact))
     read = lambda p: images.read_image(p).pixels.astype(np.float64)  # noqa: E731
     return {"a": read(a / "out" / "render.exr"), "b": read(b / "out" / "render.exr"),
             "c": read(c / "out" / "insert.exr"), "scene": c}

@@ -39,8 +39,7 @@ from hypothesis import event, example, given, note, settings
 from hypothesis import strategies as st
 from scipy.optimize import nnls as scipy_nnls
 
-from cli_helpers import assert_one_error_line, invoke
-from pipelines.light import solution as lt
+from cli_helpers import (assert_one_error_line, invoke, VIS_STAGE)
 from pipelines.light import bases
 from pipelines.io import scene_files as sc
 from pipelines.geometry import camera
@@ -748,7 +747,7 @@ def check_default_map(scene: Path, tables: dict, default_map: dict) -> None:
 
 
 @props(250)
-@example(doc=({"visibility": {"resolution": [8]}}, {}))
+@example(doc=({VIS_STAGE: {"resolution": [8]}}, {}))
 @given(doc=scene_tables("typed") | scene_tables("any"))
 def test_scene_toml_is_loaded_or_refused_with_input_error(workdir, doc):
     tables, top = doc

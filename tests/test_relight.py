@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import check_bad_input, invoke, ok
+from cli_helpers import (check_bad_input, invoke, ok, VIS_STAGE)
 from pipelines.light import cubemap
 from pipelines.io import images
 
@@ -60,7 +60,7 @@ def test_new_view_with_the_true_light_matches_mitsuba(mitsuba, name, bound):
         assert novel < bound
     report = json.loads((scene / "out" / "novel_true.json").read_text())
     assert report["view"].startswith("view-") and report["compared_pixels"] > 40000
-    assert (scene / ".wavelight" / f"visibility-{report['view']}.h5").is_file()
+    assert (scene / ".wavelight" / "visibility" / f"{report['view']}-R32.h5").is_file()
 
 
 @pytest.mark.slow
@@ -105,7 +105,7 @@ def sample(lambert_solved):
 def test_relight_defaults_to_the_solve_resolution_and_a_new_light_scales(sample, tmp_path):
     scene = shutil.copytree(sample, tmp_path / "s")
     err = ok(invoke(scene, "relight"))
-    assert "visibility: skipped" in err  # R = 8 from the solve, not the default 32
+    assert f"{VIS_STAGE}: skipped" in err  # R = 8 from the solve, not the default 32
     base = images.read_image(scene / "out" / "relight.exr").pixels
     ok(invoke(scene, "relight", "--name", "brighter", "--light-exposure", "1"))
     np.testing.assert_allclose(images.read_image(scene / "out" / "brighter.exr").pixels, 2 * base, rtol=1e-6)

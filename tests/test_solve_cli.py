@@ -14,16 +14,7 @@ import re
 import numpy as np
 import pytest
 
-from cli_helpers import (
-    assert_one_error_line,
-    RES,
-    copy_scene,
-    decision_line,
-    invoke,
-    manifest,
-    ok,
-    snapshot,
-)
+from cli_helpers import (assert_one_error_line, RES, copy_scene, decision_line, invoke, manifest, ok, snapshot, VIS_STAGE, vis_file)
 
 SOLVE_OUTPUTS = ("light_latlong.exr", "light_cross.exr", "light_cross.png", "observability.png", "coefficients.h5",
                  "relit.exr", "relit.png", "residual.png", "reflectance.json", "solve_report.json")
@@ -56,7 +47,7 @@ def _raw_exr(path) -> np.ndarray:
 def _used_pixels(scene) -> tuple[np.ndarray, np.ndarray]:
     from pipelines.io.visibility_file import read_visibility
 
-    data = read_visibility(scene / ".wavelight" / "visibility.h5")
+    data = read_visibility(vis_file(scene))
     return data.samples.pixel[:, 0], data.samples.pixel[:, 1]
 
 
@@ -105,7 +96,7 @@ def solved_copy(solved, tmp_path):
 def test_solve_writes_every_output_and_records_them(solved):
     scene, result = solved
     err = result.stderr
-    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")
     assert decision_line(err, "solve") == "solve: running (no previous run)"
     for name in SOLVE_OUTPUTS:
         path = scene / "out" / name
@@ -113,7 +104,7 @@ def test_solve_writes_every_output_and_records_them(solved):
         assert f"solve: wrote out/{name}" in err
     rec = manifest(scene)["stages"]["solve"]
     assert set(rec["outputs"]) == {f"out/{n}" for n in SOLVE_OUTPUTS}
-    assert rec["upstream"] == {"visibility": manifest(scene)["stages"]["visibility"]["key"]}
+    assert rec["upstream"] == {VIS_STAGE: manifest(scene)["stages"][VIS_STAGE]["key"]}
     assert set(rec["inputs"]) == {"photo"}
     assert rec["input_paths"]["photo"] == "image.exr"
     # previews are real images of the photo's size / the cross layout
@@ -158,7 +149,7 @@ def test_solve_report_contents(solved):
 
     px = rep["pixels"]
     used_rows, _ = _used_pixels(scene)
-    assert px["used"] == len(used_rows) == manifest(scene)["stages"]["visibility"]["summary"]["used"]
+    assert px["used"] == len(used_rows) == manifest(scene)["stages"][VIS_STAGE]["summary"]["used"]
     assert px["saturated_excluded"] == 0  # float EXR photo: nothing clips
     assert px["fit"] + px["held_out"] == px["used"]
     assert abs(px["held_out"] / px["used"] - 0.1) < 0.02  # --held-out 0.1 (measured 10.4 %)
@@ -315,9 +306,13 @@ def test_solve_cache_skip_rerun_force_and_status(solved_copy):
     before = snapshot(scene)
     result = invoke(scene, "solve", "--resolution", RES)
     err = ok(result)
-    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")
     assert decision_line(err, "solve").startswith("solve: skipped, up to date")
-    assert result.stdout == ""
+    # the result prints even when nothing ran (and with -q): the same line the run printed
+    report = _report(scene)
+    assert result.stdout.startswith(f"solve: wavelet, {report['solution']['coefficients']} coefficients")
+    quiet = invoke(scene, "solve", "--resolution", RES, quiet=True)
+    assert ok(quiet) == "" and quiet.stdout == result.stdout
     assert snapshot(scene) == before
 
     status = invoke(scene, "status")
@@ -338,7 +333,7 @@ def test_solve_cache_skip_rerun_force_and_status(solved_copy):
     assert result.stdout.startswith("solve: sh, ")
     err = ok(invoke(scene, "solve", "--resolution", RES, "--basis", "sh", "--force"))
     assert decision_line(err, "solve") == "solve: running (--force)"
-    assert decision_line(err, "visibility").startswith("visibility: skipped")  # --force is the solve's only
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped")  # --force is the solve's only
 
     # a changed photo makes the solve stale, and the next solve reruns for it
     from pipelines.io import images
@@ -372,7 +367,7 @@ def test_every_basis(solved_copy, args, basis):
     err = ok(result)
     if args == ["--basis", "wavelet"]:  # the default, spelled out: the fixture's solve, nothing to do
         assert decision_line(err, "solve").startswith("solve: skipped, up to date")
-        assert result.stdout == ""
+        assert result.stdout.startswith("solve: wavelet, ")
     else:
         assert decision_line(err, "solve").startswith("solve: running (params changed: ")
         assert result.stdout.startswith(f"solve: {basis}, ")
@@ -486,7 +481,7 @@ def test_compare(solved, solved_copy):
         assert after[f"out/{name}"] == before[f"out/{name}"], name
     again = invoke(scene, "compare", "--resolution", RES)
     assert decision_line(ok(again), "compare").startswith("compare: skipped, up to date")
-    assert again.stdout == ""
+    assert again.stdout == result.stdout  # results print even when nothing ran
     states = {stage: r["state"] for stage, r in _status(scene).items()}
     assert states["compare"] == "fresh" and states["solve"] == "fresh"
 
@@ -670,7 +665,7 @@ def test_scene_toml_solve_section(scene):
                                       "held-out = 0.2\n")
     result = invoke(scene, "solve")
     err = ok(result)
-    assert decision_line(err, "visibility").startswith("visibility: skipped, up to date")  # R = 8 from [visibility]
+    assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")  # R = 8 from [visibility]
     rep = _report(scene)
     assert rep["basis"] == "quadtree"
     assert rep["options"]["resolution"] == 8

@@ -298,13 +298,6 @@ class SceneCache:
         self._save(data)
         return rec
 
-    def touch(self, stage: str) -> None:
-        """Note that a stage's result was used now (the visibility slots are pruned by last use)."""
-        data = self.manifest()
-        if stage in data["stages"]:
-            data["stages"][stage]["used"] = time.time()
-            self._save(data)
-
     def forget(self, stage: str, files: list[Path]) -> None:
         """Drop a stage's record and delete its files (pruning)."""
         data = self.manifest()

@@ -45,7 +45,7 @@ def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
     if code is None or code not in _OS_FIXES and not isinstance(exc, OSError):
         return None
     where = getattr(exc, "filename", None) or scene or "."
-    problem = os.strerror(code) if code else str(exc)
+    problem = (getattr(exc, "strerror", None) or os.strerror(code)) if code else str(exc)
     fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
     return InputError(problem.lower() if code else problem, where, fix).line()
 
@@ -503,6 +503,9 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
 @click.option("--resolution", "-R", type=int, default=None,
               help="Cube-map R of the light [default: the solve's, or 32 for --light].")
 @click.option("--supersample", type=int, default=1, show_default=True, help="k x k shadow rays per texel.")
+@click.option("--visibility", "visibility_method", default="adaptive", show_default=True,
+              type=click.Choice(["adaptive", "exact"]),
+              help="The scene's cached visibility to reuse (the object's own shadow rays are always cast).")
 @click.option("--name", default="insert", show_default=True, help="Output names: out/NAME.exr/png, NAME_render.exr, "
               "NAME_shadow.png, NAME.json.")
 @material_options
@@ -519,7 +522,8 @@ def insert_cmd(obj, **kw):
     opts = InsertOptions(kw.pop("object_arg"), kw.pop("at"), kw.pop("scale"), kw.pop("rotate_z"), kw.pop("radius"),
                          kw.pop("object_material"), kw.pop("object_kd"), kw.pop("light"), kw.pop("resolution"),
                          kw.pop("supersample"), kw.pop("exposure"), kw.pop("name"))
-    insert_stage(scene, opts, material, material_path, obj["console"], kw.pop("force"), obj["lock_wait"])
+    insert_stage(scene, opts, material, material_path, obj["console"], kw.pop("force"), obj["lock_wait"],
+                 kw.pop("visibility_method"))
 
 
 @_command("export")

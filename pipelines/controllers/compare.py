@@ -22,6 +22,7 @@ class CompareResult:
     rows: list  # one dict per run
     lights: list  # (label, (N, 3) texel light) per run
     pixels: dict
+    sample: dict | None
     system_seconds: float
     observability: dict
 
@@ -52,8 +53,8 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
     n = len(observability)
     n_unobs = int(unobservable.sum())
     return CompareResult(rows, lights, {"used": int(len(values)), "saturated_excluded": int((~usable).sum()),
-                                        "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum()),
-                                        "sample": systems.sample_info},
+                                        "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
+                         systems.sample_info,
                          getattr(ne, "seconds", 0.0),
                          {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
                           "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum())})

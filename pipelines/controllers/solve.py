@@ -143,9 +143,7 @@ class _Systems:
         from ..light.system import LightSystem, build_normal_equations
 
         if self.options.exact:
-            n_sat = int((~self.usable).sum())
-            self.progress.note(f"normal equations over {len(self.values)} pixels x {self.vis.cube.n_texels} texels"
-                               + (f" ({n_sat} saturated pixels left out)" if n_sat else ""))
+            self.progress.note(f"normal equations over {int(self.usable.sum())} pixels x {self.vis.cube.n_texels} texels")
             ne = build_normal_equations(self.vis, self.values, material, use=self.usable, held_out=self.held,
                                         progress=lambda done, total: self.progress.advance("normal equations", done,
                                                                                            total, "pixels"))
@@ -201,14 +199,31 @@ class SolveResult:
     report: dict = field(default_factory=dict)
 
 
-def _brightest(solution, cube) -> dict:
+BRIGHT_REGION_DEG = 20.0  # the brightest region: texels this close to the brightest one, at least half as bright
+
+
+def brightest(light: np.ndarray, cube) -> dict:
+    """The brightest texel (ties: the lowest index) and the energy centroid of the region around
+    it (texels within BRIGHT_REGION_DEG of it and at least half its luminance): on a coarse solve
+    the texel is a corner of a constant block, the centroid its centre; for a sun, its direction."""
     from ..light.cubemap import direction_to_spherical
 
-    lum = solution.light @ np.array([0.2126, 0.7152, 0.0722])
+    lum = np.asarray(light, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
     i = int(np.argmax(lum))
-    theta, phi = direction_to_spherical(cube.directions[i:i + 1])
-    return {"texel": i, "direction": cube.directions[i].tolist(), "theta_deg": float(np.degrees(theta[0])),
-            "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": solution.light[i].tolist()}
+    d = cube.directions
+    near = (d @ d[i]) >= np.cos(np.radians(BRIGHT_REGION_DEG))
+    region = near & (lum >= 0.5 * lum[i]) & (lum > 0)
+    power = lum * cube.solid_angles
+    centre = (power[region, None] * d[region]).sum(axis=0)
+    centre = centre / np.linalg.norm(centre) if np.linalg.norm(centre) > 0 else d[i]
+    theta, phi = direction_to_spherical(np.stack([d[i], centre]))
+    return {"texel": i, "direction": d[i].tolist(), "theta_deg": float(np.degrees(theta[0])),
+            "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": np.asarray(light)[i].tolist(),
+            "centroid": {"direction": centre.tolist(), "theta_deg": float(np.degrees(theta[1])),
+                         "phi_deg": float(np.degrees(phi[1]) % 360.0), "texels": int(region.sum()),
+                         "power_share": float(power[region].sum() / max(power.sum(), 1e-300)),
+                         "note": f"energy centroid of the texels within {BRIGHT_REGION_DEG:g} deg of the brightest "
+                                 "one and at least half as bright"}}
 
 
 # -- the controller -----------------------------------------------------------------------------
@@ -253,6 +268,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     t0 = time.monotonic()
     values, usable, held = prepare_photo(vis, photo, options, photo_path)
     saturated = ~usable
+    if saturated.any():
+        progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")
     systems = _Systems(vis, values, usable, held, options, progress)
     light_options = options.light
 
@@ -261,12 +278,22 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         progress.note(f"{light_options.basis} level {rec.index}: {rec.n_coefficients} coefficients, "
                       f"fit {100 * rec.fit_rmse:.3f} %{h}")
 
-    def solve_light(m: Material):
-        ne = systems.system(m)
+    refined: dict = {}  # the latest refinement: reflectance rounds re-solve its model, not refine again
+
+    def full_solve(m: Material, ne):
         o = light_options
         sol = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
                           o.sh_nonnegative, on_level)
-        return sol, ne
+        refined["solution"] = sol
+        return sol
+
+    def solve_light(m: Material):
+        ne = systems.system(m)
+        if not options.exact and m.specular and "solution" in refined:
+            sol = bases.refit(ne, vis.cube, refined["solution"])
+            if sol is not None:
+                return sol, ne
+        return full_solve(m, ne), ne
 
     def on_round(r):
         h = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
@@ -302,6 +329,11 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None
     material, sol, system = result.material, result.solution, result.context
+    if not options.exact and material.specular and sol is not refined.get("solution"):
+        # the rounds re-solved the refinement of an earlier material: refine once more under the chosen one
+        progress.note(f"refining the light under {material_text(material)}")
+        sol = full_solve(material, system)
+        result.solution = sol
     recast = np.zeros(0, np.int64)
     if adaptive and backend is not None:
         recast = bright_texels(sol.light, vis.cube)
@@ -348,7 +380,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                   "texel's radiance; unobservable texels (0) get no light"},
         "relit": versus,
         "warnings": warnings,
-        "brightest_direction": _brightest(sol, vis.cube),
+        "brightest_direction": brightest(sol.light, vis.cube),
         "solution": sol.summary(),
         "seconds": time.monotonic() - t0,
     }

@@ -137,7 +137,8 @@ class VisibilityData:
 def compute_visibility(backend, samples: PixelSamples, cube: CubeMap, supersample: int = 1,
                        rows_per_chunk: int = 512, progress=None) -> VisibilityData:
     """Whole visibility in memory (the cached stage instead writes chunk by chunk, resumably)."""
-    parts = []
+    width = (cube.n_texels + 7) // 8 if supersample == 1 else cube.n_texels
+    parts = [np.zeros((0, width), np.uint8)]
     for a in range(0, len(samples), rows_per_chunk):
         parts.append(visibility_rows(backend, samples, slice(a, min(len(samples), a + rows_per_chunk)),
                                      cube, supersample))

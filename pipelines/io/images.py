@@ -207,12 +207,34 @@ def _write(path: str | Path, array: np.ndarray, fmt) -> Path:
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+            raise _write_error(path, oiio.geterror())
         ok = out.write_image(arr)
         out.close()
         if not ok:
-            raise OSError(f"cannot write {path}: {out.geterror()}")
+            raise _write_error(path, out.geterror())
     return path
+
+
+def _write_error(path: Path, detail: str) -> OSError:
+    """OpenImageIO reports a failed write as text: an OSError that says why (with its errno when the
+    cause is known: a full disk, a missing permission), naming the final file."""
+    import errno
+    import os
+    import shutil
+
+    text = detail.lower()
+    try:
+        full = shutil.disk_usage(path.parent).free < 1 << 20
+    except OSError:
+        full = False
+    if full or "no space" in text:
+        code = errno.ENOSPC
+    elif "permission" in text:
+        code = errno.EACCES
+    else:
+        return OSError(errno.EIO, f"cannot write the image ({detail.splitlines()[0] if detail else 'unknown error'})",
+                       str(path))
+    return OSError(code, os.strerror(code), str(path))
 
 
 def write_exr(path: str | Path, image: np.ndarray) -> Path:

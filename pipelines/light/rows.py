@@ -51,7 +51,7 @@ class Pyramid:
             for level in range(top - 1, -1, -1):
                 cur = cur[:, :, 0::2] + cur[:, :, 1::2]
                 cur = cur[:, 0::2, :] + cur[:, 1::2, :]
-                tile[level] = cur.reshape(n, -1)
+                tile[level] = cur.reshape(n, cur.shape[1] * cur.shape[2])
             self.levels.append(tile)
             self.offsets.append(offset)
             offset += s * s

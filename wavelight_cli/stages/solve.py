@@ -144,11 +144,11 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
 def _result_line(sol, result, report, cache, light_path) -> str:
     versus = result.versus
     held = "" if sol.held_out_rmse is None else f", held-out {100 * sol.held_out_rmse:.2f} %"
-    b = report["brightest_direction"]
+    b = report["brightest_direction"]["centroid"]
     kept = f"level {sol.chosen} kept of 0-{len(sol.levels) - 1}" if len(sol.levels) > 1 else "one solve"
     return (f"solve: {sol.basis}, {sol.n_coefficients} coefficients ({kept}): relit error "
             f"{100 * versus['relative_rmse_vs_photo']:.2f} % over {versus['compared_pixels']} pixels{held}; "
-            f"brightest direction theta {b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> "
+            f"brightest light theta {b['theta_deg']:.1f} deg, phi {b['phi_deg']:.1f} deg -> "
             f"{cache.relative(light_path)}")
 
 
@@ -171,7 +171,7 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
             data = visibility_file.read_visibility(vis.path)
             result = compare_scene(data, photo, material, opts, photo_path, ConsoleProgress(console, "compare"))
             table = {"format": "wavelight-compare-1", "scene": str(scene.root), "resolution": vis_opts.resolution,
-                     "hemisphere": vis_opts.hemisphere, "pixels": result.pixels,
+                     "hemisphere": vis_opts.hemisphere, "pixels": result.pixels, "sample": result.sample,
                      "normal_equations_seconds": result.system_seconds, "observability": result.observability,
                      "rows": result.rows, "columns": COLUMNS}
             text = compare_markdown(table)

@@ -3,8 +3,8 @@ view and options.
 
 Results of several options and views coexist: each is the stage `visibility/<view>/<options>`
 (e.g. `visibility/photo/R32`, `visibility/photo/R16-exact`) with its file
-`.wavelight/visibility/<view>-<options>.h5`. Of each view the KEEP most recently used results are
-kept; older ones are deleted (README: Cache). The exact method runs in resumable chunks: an
+`.wavelight/visibility/<view>-<options>.h5`. Of each view the KEEP most recently computed results
+are kept; older ones are deleted when a new one is computed (README: Cache). The exact method runs in resumable chunks: an
 interrupted run continues where it stopped and gives identical bits.
 """
 
@@ -87,7 +87,9 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
             for note in mesh.notes:
                 console.say(f"{name}: mesh: {note}")
             cube = CubeMap(opts.resolution, opts.hemisphere)
-            console.say(f"{name}: {len(samples)} pixels x {cube.n_texels} texels ({opts.method})")
+            console.say(f"{name}: {len(samples)} pixels x {cube.n_texels} texels (R={opts.resolution}, "
+                        f"{'hemisphere' if opts.hemisphere else 'sphere'}, supersample {opts.supersample}, "
+                        f"{opts.method}, {opts.backend})")
             t0 = time.monotonic()
             if opts.method == "adaptive":
                 stored, summary = _adaptive(backend, samples, cube, opts, console, name)
@@ -104,10 +106,11 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
 
         d = run_stage(cache, stage, console, force, work)
         if d.run:
-            shutil.rmtree(cache.dir / "partial" / f"{view.name}-{opts.slot}-{d.key[:16]}", ignore_errors=True)
+            partial = cache.dir / "partial"
+            shutil.rmtree(partial / f"{view.name}-{opts.slot}-{d.key[:16]}", ignore_errors=True)
+            if partial.is_dir() and not any(partial.iterdir()):
+                partial.rmdir()
             _prune(cache, view)
-        else:
-            cache.touch(name)
     return VisibilityResult(d, out, name)
 
 
@@ -175,10 +178,9 @@ def _exact(cache, d, backend, samples, cube, opts, console, name):
 
 
 def _prune(cache: SceneCache, view: View) -> None:
-    """Keep the KEEP most recently used visibility results of the view; delete the others."""
+    """Keep the KEEP most recently computed visibility results of the view; delete the others."""
     stages = cache.manifest()["stages"]
-    mine = [(max(rec.get("used", 0.0), _finished(rec)), name) for name, rec in stages.items()
-            if name.startswith(f"visibility/{view.name}/")]
+    mine = [(_finished(rec), name) for name, rec in stages.items() if name.startswith(f"visibility/{view.name}/")]
     for _, name in sorted(mine, reverse=True)[KEEP:]:
         files = [cache.scene_dir / rel for rel in stages[name].get("outputs", {})]
         cache.forget(name, files)
