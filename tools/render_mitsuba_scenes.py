@@ -134,15 +134,16 @@ PLASTIC_SCENES = (
           plastic([0.6, 0.45, 0.3]), View("main", 210.0, 30.0, 3.8, 160.3, 119.8), 31500),
 )
 
-_TEXTURED_VIEWS = dict(view=View("main", 300.0, 30.0, 3.2, 160.6, 118.7),
-                       extra_views=(View("left", 240.0, 20.0, 3.4, 159.4, 120.2),
-                                    View("right", 15.0, 45.0, 3.0, 161.1, 119.3)))
+# Spot's head points to +Y: the main view (azimuth 70) sees its face and flank
+_TEXTURED_VIEWS = dict(view=View("main", 70.0, 30.0, 3.2, 160.6, 118.7),
+                       extra_views=(View("left", 10.0, 20.0, 3.4, 159.4, 120.2),
+                                    View("right", 145.0, 45.0, 3.0, 161.1, 119.3)))
 _TEXTURED_MATERIAL = {"parts": {
     "spot": {"type": "diffuse", "texture": "spot_texture.png", "texture_encoding": "sRGB (decoded to linear)",
              "filter": "bilinear", "wrap": "repeat"},
     "ground": {"type": "diffuse", "kd": GROUND_TEXTURED}}}
 TEXTURED_SCENES = (
-    Scene("spot_textured_sun", "textured", "spot/spot_triangulated.obj", SUN, 86.0, _TEXTURED_MATERIAL,
+    Scene("spot_textured_sun", "textured", "spot/spot_triangulated.obj", SUN, 196.0, _TEXTURED_MATERIAL,
           seed=32100, textured=True, **_TEXTURED_VIEWS),
     Scene("spot_textured_overcast", "textured", "spot/spot_triangulated.obj", OVERCAST, 100.0, _TEXTURED_MATERIAL,
           seed=32200, textured=True, **_TEXTURED_VIEWS),
