@@ -1212,8 +1212,9 @@ def forward_readme(out: Path, lights: dict, sag: float, nv: int, nf: int, view_c
               f"                       its facets sag up to {sag:.1e} inside; use normals = positions)",
               "  NAME/image.exr       linear float32 RGB, noise-free, multijitter "
               f"{SPP_FORWARD} spp; NAME/params.json: material, light file, camera, MC noise",
-              "", "  NAME                  material (diffuse_reflectance " + str(FORWARD_KD) + ", int_ior 1.49, "
-              "ext_ior 1.000277, specular_reflectance 1, nonlinear false)      MC noise"]
+              "", "  all: diffuse_reflectance " + str(FORWARD_KD) + ", int_ior 1.49, ext_ior 1.000277, "
+              "specular_reflectance 1, nonlinear false; glint px: luminance > 10 x the mask's median",
+              "  NAME                    material                            MC noise (of the mean over mask.png)"]
     for name in FORWARD_NAMES:
         p = out / name / "params.json"
         if p.is_file():
@@ -1221,8 +1222,8 @@ def forward_readme(out: Path, lights: dict, sag: float, nv: int, nf: int, view_c
             mat = prm["material"]
             desc = mat["type"] + (f" {mat['distribution']} alpha={mat['alpha']:g}" if "alpha" in mat else "")
             rr = prm["render"]
-            lines += [f"  {name:<22}{desc:<76}{100 * rr['mc_noise_rel_mask']:.2f}%"
-                      + (f" ({rr['glint_pixels']} glint px: {100 * rr['mc_noise_rel_glints']:.0f}%; others "
+            lines += [f"  {name:<24}{desc:<36}{100 * rr['mc_noise_rel_mask']:.2f}%"
+                      + (f" ({rr['glint_pixels']} glint px: {100 * rr['mc_noise_rel_glints']:.1f}%; others "
                          f"{100 * rr['mc_noise_rel_mask_without_glints']:.2f}%)" if rr["glint_pixels"] else "")]
     lines += ["", "RENDERING: integrator \"direct\", hide_emitters, box filter, light via pipelines/exports.py "
               f"(f={ENV_SUPERSAMPLE}, to_mitsuba, mitsuba_xml).",
