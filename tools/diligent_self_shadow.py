@@ -8,8 +8,9 @@ Usage:
 What goes wrong today (pipelines/camera.py, pipelines/raycast.py):
   `pixel_samples` takes Embree's float32 hit distance t (float32 ray: origin rounded in the recentred
   frame, direction rounded) and computes position = o + t d with the float64 ray. From a camera D away,
-  t's rounding alone is ~eps32 x D (eps32 = 2^-23 ~ 1.2e-7) along the ray, and the float32 and float64
-  rays part by ~eps32 x D sideways; both move the point off the hit facet by ~eps32 x D. The shadow
+  Embree's float32 intersection gives t with an error ~eps32 x D (eps32 = 2^-23 ~ 1.2e-7), which moves
+  the point off its facet by that x cos(view, normal); the float32/float64 ray mismatch adds little
+  (the float32 ray at Embree's t is off its facet by the same RMS, see `study`). The shadow
   rays start RAY_OFFSET = 1e-5 x scene size above it. For a ball of radius r (scene size 2 sqrt 3 r)
   the error beats the offset once D is more than a few hundred r: a point under its own facet sees the
   facet's back from inside toward every direction in front of it, so all its texels are shadowed.
@@ -24,7 +25,7 @@ The fix tried here:
      ~eps32 x the coordinates' magnitude there (the point's and its triangle's):
         offset = K x eps32 x (max|p_local| + longest edge of the hit triangle), K = 32,
      computed and added in float64 before the rounding. It scales with the scene (any scale) and is
-     independent of the camera distance. (Today's 1e-5 x scene size is ~84 x eps32 x max|p_local| on
+     independent of the camera distance. (Today's 1e-5 x scene size is ~290 x eps32 x max|p_local| on
      a ball: it was too small for the camera-distance error, not for float32 itself.)
 """
 
