@@ -283,8 +283,8 @@ def _compare(doc: Doc, compare: dict | None, out: Path):
                       "Held-out error against the solve's time (log-log); marker size grows with the coefficients."))
     if (out / "compare_lights.png").is_file():
         items.append(("compare_lights.png", "the bases' lights side by side",
-                      "Each basis' light on the cube cross at one exposure (the sky's 95th percentile; a sun "
-                      "saturates); blue: negative radiance."))
+                      "Each basis' light on the cube cross (cropped to its texels), log tone-mapped at one scale "
+                      "(radiance at the colour bar's ticks); blue: negative radiance (a plain SH fit)."))
     s.figs(items)
 
 

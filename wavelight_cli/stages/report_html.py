@@ -37,7 +37,8 @@ table.numbers td:first-child { color: #555; }
 figure { margin: 0; max-width: 100%; display: table; }
 figure img { max-width: 100%; height: auto; display: block; }
 figure img.px { image-rendering: pixelated; }
-figcaption { font-size: .86em; color: #444; display: table-caption; caption-side: bottom; margin-top: 4px; }
+figcaption { font-size: .86em; color: #444; display: table-caption; caption-side: bottom;
+             text-align: left; margin-top: 4px; }
 .wl-slider { position: relative; display: inline-block; line-height: 0; user-select: none; }
 .wl-slider img { image-rendering: pixelated; display: block; }
 .wl-slider img.over { position: absolute; top: 0; left: 0; }
