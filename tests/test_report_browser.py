@@ -4,9 +4,8 @@ that nothing was fetched but the page itself and data: URIs, that the console st
 that the photo / relit slider moves, and that a screenshot has the size asked for and is not blank.
 
 The browser is driven over the DevTools protocol through `--remote-debugging-pipe` (NUL-separated
-JSON on file descriptors 3 and 4), with the standard library only. The screenshots are saved in the
-test's temporary folder and their paths printed (run with -s to see them) and written to
-build/report-screenshot.txt.
+JSON on file descriptors 3 and 4), with the standard library only. The screenshots are saved in
+build/report-browser/ (or $WAVELIGHT_SCREENSHOT_DIR) and their paths printed (pytest -s shows them).
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import base64
 import json
 import os
 import select
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -65,8 +63,12 @@ class Browser:
         self._id = 0
         self.events: list[dict] = []
         self.session = None
-        target = self.call("Target.createTarget", url="about:blank")["targetId"]
-        self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        try:
+            target = self.call("Target.createTarget", url="about:blank")["targetId"]
+            self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        except BaseException:
+            self.close()
+            raise
 
     def _send(self, message: dict) -> None:
         data = json.dumps(message).encode() + b"\0"
@@ -243,8 +245,10 @@ def _png_pixels(path: Path) -> np.ndarray:
 
 
 def test_screenshots_have_the_size_asked_for_and_are_not_blank(page):
-    browser, _, root = page
-    shot = browser.screenshot(root / "report-viewport.png", *VIEWPORT)
+    browser, _, _ = page
+    shots = Path(os.environ.get("WAVELIGHT_SCREENSHOT_DIR", REPO / "build" / "report-browser"))
+    shots.mkdir(parents=True, exist_ok=True)
+    shot = browser.screenshot(shots / "report-viewport.png", *VIEWPORT)
     px = _png_pixels(shot)
     assert px.shape == (VIEWPORT[1], VIEWPORT[0], 3)
     grey = px.mean(axis=2)
@@ -253,18 +257,10 @@ def test_screenshots_have_the_size_asked_for_and_are_not_blank(page):
     assert len(np.unique(px.reshape(-1, 3) // 16, axis=0)) > 50  # colours: the images are drawn
     height = int(browser.evaluate("Math.ceil(document.documentElement.scrollHeight)"))
     assert height > 3 * VIEWPORT[1]  # the whole report, not a stub
-    full = browser.screenshot(root / "report-full.png", VIEWPORT[0], height)
+    full = browser.screenshot(shots / "report-full.png", VIEWPORT[0], height)
     whole = _png_pixels(full)
     assert whole.shape == (height, VIEWPORT[0], 3)
     band = whole[: height // 4 * 4].reshape(4, height // 4, VIEWPORT[0], 3)
     assert all(b.std() > 20 for b in band), "a quarter of the page is blank"
-    note = REPO / "build" / "report-screenshot.txt"
-    note.parent.mkdir(exist_ok=True)
-    note.write_text(f"{shot}\n{full}\n")
     print(f"\nscreenshots: {shot} ({VIEWPORT[0]}x{VIEWPORT[1]}), {full} ({VIEWPORT[0]}x{height}); "
           f"page loaded in {browser.load_seconds:.2f} s")
-    keep = os.environ.get("WAVELIGHT_SCREENSHOT_DIR")
-    if keep:
-        Path(keep).mkdir(parents=True, exist_ok=True)
-        for p in (shot, full):
-            shutil.copy(p, Path(keep) / p.name)
