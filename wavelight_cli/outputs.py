@@ -37,7 +37,10 @@ def jsonable(value):
 def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None,
                 unobservable: np.ndarray | None = None) -> list[Path]:
     """A cube-map light as <stem>_latlong.exr (exchange format), <stem>_cross.exr and a preview PNG
-    of the cross (texels outside the layout dark grey, unobservable texels dark magenta)."""
+    of the cross (texels outside the layout dark grey, unobservable texels dark magenta).
+
+    The preview is log tone-mapped (`log_display`): a sun does not push the sky to black. The
+    radiance at black and at white is in the PNG's text (`wavelight:log_black`, `wavelight:log_white`)."""
     from pipelines.io import images
     from pipelines.light import cubemap
 
@@ -46,13 +49,95 @@ def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int 
     images.write_exr(paths[0], cubemap.cube_to_latlong(texels, cube, height))
     cross, valid = cubemap.cross_image(texels, cube)
     images.write_exr(paths[1], cross)
-    preview = images.tonemap(cross)
+    preview, lo, hi = log_display(cross)
     preview[~valid] = 0.15
     if unobservable is not None and np.any(unobservable):
         marked, _ = cubemap.cross_image(np.asarray(unobservable, np.float64), cube)
         preview[marked > 0.5] = (0.35, 0.0, 0.35)
-    images.write_png(paths[2], upscale(preview), already_display=True)
+    write_display_png(paths[2], upscale(preview), {
+        "wavelight:display": "log: brightness proportional to log of the brightest channel's radiance",
+        "wavelight:log_black": f"{lo:.6g}", "wavelight:log_white": f"{hi:.6g}"})
     return paths
+
+
+def log_range(values: np.ndarray, decades: float = 4.0, percentile: float = 2.0) -> tuple[float, float]:
+    """(black, white) radiance of `log_display` for these values: white at the brightest channel's
+    maximum, black at the `percentile` of the positive values but at most `decades` below white."""
+    m = np.clip(np.nan_to_num(np.asarray(values, np.float64), nan=0.0, posinf=0.0), 0.0, None)
+    m = m.max(axis=-1) if m.ndim > 1 and m.shape[-1] == 3 else m
+    pos = m[m > 0]
+    if pos.size == 0:
+        return 0.1, 1.0
+    hi = float(pos.max())
+    lo = max(float(np.percentile(pos, percentile)), hi * 10.0 ** -decades)
+    if not lo < hi:
+        lo = hi / 10.0
+    return lo, hi
+
+
+def log_display(image: np.ndarray, lo: float | None = None, hi: float | None = None
+                ) -> tuple[np.ndarray, float, float]:
+    """(..., 3) linear radiance -> ((..., 3) display values in [0, 1], black, white).
+
+    A pixel's display luminance is t = log(m / black) / log(white / black) (clipped to [0, 1],
+    sRGB-encoded) with m its brightest channel, and its colour is rgb / m: the hue of a dim sky
+    shows beside a sun thousands of times brighter. Radiance at or below `black` (and zero) is
+    black. Missing bounds come from `log_range`. `log_colours` are the colours of a grey ramp, for
+    a colour bar with LogNorm(black, white)."""
+    from pipelines.io.images import linear_to_srgb
+
+    img = np.clip(np.nan_to_num(np.asarray(image, np.float64), nan=0.0, posinf=0.0), 0.0, None)
+    if lo is None or hi is None:
+        auto = log_range(img)
+        lo, hi = (auto[0] if lo is None else lo), (auto[1] if hi is None else hi)
+    m = img.max(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.log(np.maximum(m, 1e-300) / lo) / np.log(hi / lo), 0.0, 1.0)
+        hue = np.where(m[..., None] > 0, img / m[..., None], 0.0)
+    return np.clip(linear_to_srgb(hue * t[..., None]), 0.0, 1.0), float(lo), float(hi)
+
+
+def log_colours(n: int = 256) -> np.ndarray:
+    """(n, 3) colours of `log_display` from black to white (for a colour bar: ListedColormap with
+    LogNorm(black, white))."""
+    from pipelines.io.images import linear_to_srgb
+
+    return np.repeat(np.clip(linear_to_srgb(np.linspace(0.0, 1.0, n)), 0.0, 1.0)[:, None], 3, axis=1)
+
+
+def write_display_png(path: Path, display: np.ndarray, text: dict[str, str] | None = None) -> Path:
+    """An 8-bit PNG of display values in [0, 1] with text chunks (`read_png_text` reads them back)."""
+    import OpenImageIO as oiio
+
+    arr = np.ascontiguousarray(np.round(np.clip(display, 0.0, 1.0) * 255.0).astype(np.uint8))
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], oiio.UINT8)
+    for key, value in (text or {}).items():
+        spec.attribute(key, str(value))
+    with atomic_output(Path(path)) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        ok = out.write_image(arr)
+        out.close()
+        if not ok:
+            raise OSError(f"cannot write {path}: {out.geterror()}")
+    return Path(path)
+
+
+def read_png_text(path: Path) -> dict[str, str]:
+    """The `wavelight:*` text of a PNG written by `write_display_png` ({} for other files)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        oiio.geterror()
+        return {}
+    try:
+        return {a.name: str(a.value) for a in inp.spec().extra_attribs if a.name.startswith("wavelight:")}
+    finally:
+        inp.close()
 
 
 def upscale(image: np.ndarray, width: int = 512) -> np.ndarray:
@@ -62,21 +147,33 @@ def upscale(image: np.ndarray, width: int = 512) -> np.ndarray:
 
 
 def heat_map(values: np.ndarray, scale: float) -> np.ndarray:
-    """(H, W) non-negative values -> (H, W, 3) display colours (black -> red -> yellow -> white at `scale`)."""
+    """(H, W) non-negative values -> (H, W, 3) display colours (black -> red -> yellow -> white at
+    `scale`). `heat_colours(n)` are the same colours for a colour bar."""
     x = np.clip(np.nan_to_num(values) / max(scale, 1e-30), 0.0, 1.0)
     return np.stack([np.clip(3 * x, 0, 1), np.clip(3 * x - 1, 0, 1), np.clip(3 * x - 2, 0, 1)], axis=-1)
+
+
+def heat_colours(n: int = 256) -> np.ndarray:
+    """(n, 3) colours of `heat_map` from 0 to its scale (for a colour bar: ListedColormap)."""
+    return heat_map(np.linspace(0.0, 1.0, n), 1.0)
+
+
+def write_heat_png(path: Path, values: np.ndarray, scale: float, what: str, units: str) -> Path:
+    """`heat_map(values, scale)` as a PNG whose text records the scale (`wavelight:heat_scale`: the
+    value shown white), what is shown and its units, so that a report can draw its colour bar."""
+    return write_display_png(path, heat_map(values, scale), {
+        "wavelight:heat_scale": f"{scale:.6g}", "wavelight:heat_what": what, "wavelight:heat_units": units})
 
 
 def write_residual(path: Path, values: np.ndarray, reference: np.ndarray, pixels: np.ndarray, shape,
                    usable: np.ndarray | None = None) -> Path:
     """|values - reference| of the used pixels as a heat map (white = an error of 10 % of the
-    reference's 95th-percentile radiance)."""
-    from pipelines.io import images
+    reference's 95th-percentile radiance, recorded in the PNG's text)."""
     from pipelines.model.render import pixels_to_image
 
     ok = np.ones(len(values), bool) if usable is None else np.asarray(usable, bool)
     err = np.abs(np.asarray(values, np.float64)[ok] - np.asarray(reference, np.float64)[ok]).mean(axis=1)
     heat = pixels_to_image(err, pixels[ok], *shape)
     scale = 0.1 * float(np.percentile(np.abs(reference[ok]).mean(axis=1), 95)) if ok.any() else 1.0
-    images.write_png(path, heat_map(heat, scale), already_display=True)
-    return Path(path)
+    return write_heat_png(path, heat, scale, "|render - reference| (mean of R, G, B); white = 10 % of the "
+                          "reference's 95th-percentile radiance", "linear radiance")

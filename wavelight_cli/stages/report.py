@@ -1,24 +1,32 @@
-"""`wavelight report`: out/report.md and its figures (out/report/*.png) from what the stages wrote.
+"""`wavelight report`: out/report.md, out/report.html and their figures (out/report/*.png) from what
+the stages wrote.
 
 Every number in the report is read from the stages' JSON files (solve_report.json,
-reflectance.json, compare.json, relight/insert JSONs, camera.json, pose.json); the figures are drawn
-from their images and from out/coefficients.h5. Nothing is recomputed, so the report always shows
-the results as they are on disk.
+reflectance.json, compare.json, relight/insert JSONs, export/export.json, camera.json, pose.json);
+the figures are drawn from their images and from out/coefficients.h5 (`report_figures`). Nothing is
+recomputed, so the report always shows the results as they are on disk.
+
+The report is built once as a list of sections of blocks (`Doc`) and written twice: as Markdown
+(images linked, relative to out/) and as one self-contained HTML page (`report_html`: every image a
+data URI, no script, style or font from elsewhere).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
 
 from pipelines.errors import InputError
 from pipelines.io.files import atomic_output
 
 from ..console import Console
 from ..scene import SceneFiles, require
+from . import report_figures as figs
+
+SOURCES = ("solve_report.json", "reflectance.json", "compare.json", "report.json")
+OUTPUT_PREFIX = "output-"  # out/report/output-NAME-*.png: figures of relight / insert outputs
 
 
 def _json(path: Path) -> dict | None:
@@ -35,240 +43,443 @@ def _pct(x) -> str:
     return "–" if x is None else f"{100 * float(x):.2f} %"
 
 
-def _img(path: Path):
-    from pipelines.io import images
-
-    return images.read_image(path).pixels if path.is_file() else None
-
-
-def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+def _num(x, fmt: str = ".4g") -> str:
+    try:
+        return format(float(x), fmt)
+    except (TypeError, ValueError):
+        return "–"
 
 
-def _display(image):
-    from pipelines.io import images
-
-    return images.tonemap(image)
-
-
-def overview_figure(out: Path, dest: Path) -> Path | None:
-    """input | relit | residual | recovered light | observability."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from pipelines.io import images
-
-    panels = []
-    photo = None
-    relit = _img(out / "relit.exr")
-    if relit is None:
-        return None
-    report = _json(out / "solve_report.json") or {}
-    scene_dir = out.parent
-    photo_name = report.get("photo")
-    if photo_name and (scene_dir / photo_name).is_file():
-        photo = images.read_image(scene_dir / photo_name).pixels
-    scale = np.percentile(photo[photo > 0], 99.5) if photo is not None and np.any(photo > 0) else None
-    exposure = None if scale is None else -np.log2(scale)
-    if photo is not None:
-        panels.append(("input photo", images.tonemap(photo, exposure)))
-    panels.append(("relit (recovered light)", images.tonemap(relit, exposure)))
-    for title, name in (("|relit - photo|", "residual.png"), ("recovered light", "light_cross.png"),
-                        ("observability", "observability.png")):
-        if (out / name).is_file():
-            panels.append((title, images.read_image(out / name, linear=True).pixels))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.0))
-    for ax, (title, img) in zip(np.atleast_1d(axes), panels):
-        ax.imshow(np.clip(img, 0, 1))
-        ax.set_title(title, fontsize=9)
-        ax.axis("off")
-    return _save(fig, dest)
+def _rgb(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return "(" + ", ".join(_num(x, ".3g") for x in v) + ")"
+    return _num(v, ".3g")
 
 
-def levels_figure(out: Path, dest: Path) -> Path | None:
-    """The light of each refinement level on the cube cross, with its tree's leaves outlined."""
-    import h5py
-    import matplotlib
+# -- the document ------------------------------------------------------------------------------------------
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+@dataclass
+class Section:
+    anchor: str
+    title: str
+    blocks: list = field(default_factory=list)
 
-    from pipelines.light import cubemap
-    from pipelines.light import haar
-    from pipelines.io import images
-    from pipelines.io import light_file as lt
+    def p(self, text: str):
+        self.blocks.append(("p", text))
 
-    path = out / "coefficients.h5"
-    if not path.is_file():
-        return None
-    with h5py.File(path, "r") as f:
-        basis = str(f.attrs.get("basis"))
-        cube = cubemap.CubeMap(int(f.attrs["resolution"]), bool(f.attrs["hemisphere"]))
-        levels = []
-        for key in sorted(f.get("levels", {})):
-            g = f["levels"][key]
-            if "tree" not in g:
-                continue
-            tree = lt.read_tree(g["tree"])
-            coef = g["coefficients"][:]
-            if basis == "wavelet":
-                texels = haar.synthesise(coef, tree)
+    def fig(self, rel: str, alt: str, caption: str = ""):
+        self.blocks.append(("figs", [(rel, alt, caption)]))
+
+    def figs(self, items: list[tuple[str, str, str]]):
+        if items:
+            self.blocks.append(("figs", items))
+
+    def table(self, head: list[str], rows: list[list[str]], align: str):
+        self.blocks.append(("table", head, rows, align))
+
+    def numbers(self, pairs: list[tuple[str, str]]):
+        self.blocks.append(("numbers", pairs))
+
+    def items(self, entries: list[str]):
+        self.blocks.append(("list", entries))
+
+    def h3(self, text: str, anchor: str = ""):
+        self.blocks.append(("h3", text, anchor))
+
+    def slider(self, under: str, over: str, labels: tuple[str, str], caption: str):
+        self.blocks.append(("slider", under, over, labels, caption))
+
+
+@dataclass
+class Doc:
+    title: str
+    intro: list = field(default_factory=list)  # blocks before the first section
+    sections: list[Section] = field(default_factory=list)
+    sources: list[str] = field(default_factory=list)  # files the report read (relative to the scene)
+
+    def section(self, anchor: str, title: str) -> Section:
+        s = Section(anchor, title)
+        self.sections.append(s)
+        return s
+
+
+def to_markdown(doc: Doc) -> str:
+    lines = [f"# {doc.title}", ""]
+
+    def block(b):
+        kind = b[0]
+        if kind == "p":
+            lines.extend([b[1], ""])
+        elif kind == "figs":
+            for rel, alt, caption in b[1]:
+                lines.extend([f"![{alt}]({rel})", ""])
+                if caption:
+                    lines.extend([f"*{caption}*", ""])
+        elif kind == "table":
+            _, head, rows, align = b
+            lines.append("| " + " | ".join(head) + " |")
+            lines.append("|" + "|".join("---:" if a == "r" else "---" for a in align) + "|")
+            lines.extend("| " + " | ".join(r) + " |" for r in rows)
+            lines.append("")
+        elif kind == "numbers":
+            lines.extend(["| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in b[1]] + [""])
+        elif kind == "list":
+            lines.extend([f"- {e}" for e in b[1]] + [""])
+        elif kind == "h3":
+            lines.extend([f"### {b[1]}", ""])
+        elif kind == "slider":
+            pass  # report.html only; the overview figure shows both images
+
+    for b in doc.intro:
+        block(b)
+    for s in doc.sections:
+        lines.extend([f"## {s.title}", ""])
+        for b in s.blocks:
+            block(b)
+    if doc.sources:
+        lines.extend([f"Read from: {', '.join(f'`{p}`' for p in doc.sources)}.", ""])
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+# -- the report's content ----------------------------------------------------------------------------------
+
+def _intro(doc: Doc, solve: dict, camera: dict | None, pose: dict | None):
+    px = solve.get("pixels", {})
+    opts = solve.get("options", {})
+    doc.intro.append(("p", f"Photo `{solve.get('photo')}`; {px.get('used')} pixels used ({px.get('fit')} fitted, "
+                           f"{px.get('held_out')} held out); light on a cube map of R = {opts.get('resolution')} "
+                           f"({'hemisphere' if opts.get('hemisphere') else 'sphere'}). "
+                           f"{solve.get('scale_ambiguity', '')}."))
+    if camera and "calibration" in camera:
+        c = camera["calibration"]
+        doc.intro.append(("p", f"**Camera** (wavelight calibrate): fx {camera['fx']:.2f}, fy {camera['fy']:.2f}, "
+                               f"cx {camera['cx']:.2f}, cy {camera['cy']:.2f}; RMS {c['rms_px']:.3f} px over "
+                               f"{len(c['used'])} photos"
+                               + (f"; rejected: {', '.join(c['rejected'])}" if c.get("rejected") else "")
+                               + (f"; warnings: {'; '.join(c['warnings'])}" if c.get("warnings") else "") + "."))
+    if pose and "registration" in pose:
+        g = pose["registration"]
+        e = g.get("edge_refinement") or {}
+        doc.intro.append(("p", f"**Pose** (wavelight register): {g['method']}, {g['inliers']} of {g['points']} "
+                               f"points, RMS {g['rms_px']:.3f} px"
+                               + (f"; refined against the photo's edges (outline on edges "
+                                  f"{100 * e['outline_on_edges_before']:.0f} -> "
+                                  f"{100 * e['outline_on_edges_after']:.0f} %)" if e.get("accepted") else "") + "."))
+
+
+def _result(doc: Doc, solve: dict, made: dict):
+    s = doc.section("result", "Result")
+    sol = solve.get("solution", {})
+    if "overview" in made:
+        info = made["overview"].info
+        white = info.get("residual_white")
+        parts = [f"Photo and relit view at one exposure ({info['exposure']:+.2f} stops: white = the photo's "
+                 f"99.5th percentile)."]
+        parts.append("Residual |relit - photo| per used pixel (mean of R, G, B), white = "
+                     + (f"{white:.4g} (10 % of the photo's 95th-percentile radiance)." if white is not None else
+                        "10 % of the photo's 95th-percentile radiance (the value is not recorded in this "
+                        "residual.png: rerun wavelight solve --force)."))
+        parts.append(f"Observability per texel on the cube cross: {figs.OBSERVABILITY_NOTE}, white = 1 "
+                     "(the best-observed texel), black = unobservable.")
+        s.fig(made["overview"].rel, "input, relit, residual, observability", " ".join(parts))
+    if "photo" in made and "relit" in made:
+        s.slider(made["photo"].rel, made["relit"].rel, ("photo", "relit"),
+                 "Drag the slider: the input photo on the left of the line, the view relit by the recovered "
+                 "light on the right (same exposure).")
+    bd = solve.get("brightest_direction", {})
+    relit = solve.get("relit", {})
+    s.numbers([
+        ("basis", f"{solve.get('basis')} ({sol.get('coefficients')} coefficients, level {sol.get('chosen_level')})"),
+        ("relit error (all used pixels)", _pct(relit.get("relative_rmse_vs_photo"))),
+        ("held-out error", _pct(sol.get("held_out_rmse"))),
+        ("brightest direction", f"theta {bd.get('theta_deg', float('nan')):.1f} deg, "
+                                f"phi {bd.get('phi_deg', float('nan')):.1f} deg"),
+        ("unobservable texels", f"{solve.get('observability', {}).get('unobservable')} of "
+                                f"{solve.get('observability', {}).get('texels')}"),
+        ("time", f"normal equations {solve.get('normal_equations_seconds', 0):.1f} s, light "
+                 f"{sol.get('seconds', 0):.2f} s, whole solve {solve.get('seconds', 0):.1f} s")])
+    if solve.get("warnings"):
+        s.p("**What the photo cannot tell:**")
+        s.items(list(solve["warnings"]))
+
+
+def _light(doc: Doc, solve: dict, made: dict):
+    if "light" not in made:
+        return
+    s = doc.section("light", "Recovered light")
+    info = made["light"].info
+    bd = solve.get("brightest_direction", {})
+    ticks = ", ".join(f"{t:.3g}" for t in info["ticks"])
+    caption = (f"Log tone mapping: a texel's brightness is the log of its brightest channel's radiance from "
+               f"{info['black']:.3g} (black, and anything dimmer) to {info['white']:.4g} (white), its colour that of "
+               f"its RGB; the colour bar's ticks are radiance values ({ticks}). Left: the lat-long exchange format "
+               f"(`light_latlong.exr`), theta from the zenith, phi from +X towards +Y"
+               + (", the upper half (the hemisphere)" if info["hemisphere"] else "") + f". Right: {info['layout']}.")
+    if "theta_deg" in bd:
+        caption += (f" Circle: the brightest direction (theta {bd['theta_deg']:.1f} deg, phi {bd['phi_deg']:.1f} "
+                    f"deg, radiance {_rgb(bd.get('radiance_rgb'))}).")
+    if info["unobservable"]:
+        caption += f" Magenta: the {info['unobservable']} unobservable texels (no light)."
+    s.fig(made["light"].rel, "the recovered light: lat-long and cube map", caption)
+    s.p("Files: `light_latlong.exr` (linear radiance, the exchange format), `light_cross.exr` and "
+        "`light_cross.png` (the cube cross), `coefficients.h5` (the basis' coefficients and every level).")
+
+
+def _levels(doc: Doc, solve: dict, made: dict):
+    s = doc.section("levels", "Refinement, level by level")
+    if "levels" in made:
+        info = made["levels"].info
+        s.fig(made["levels"].rel, "levels",
+              f"Each panel: that level's light on the cube cross, cropped to its texels ({info['caption']}); green "
+              f"lines are the boundaries of the level's tree's leaves. One log scale for all panels: "
+              f"{info['black']:.3g} (black) to {info['white']:.4g} (white), radiance at the colour bar's ticks.")
+    s.table(["level", "coefficients", "leaves", "fit", "held-out", "seconds"],
+            [[str(lv["level"]), str(lv["coefficients"]), str(lv.get("leaves", "–")), _pct(lv["fit_rmse"]),
+              _pct(lv.get("held_out_rmse")), f"{lv['seconds']:.3f}"]
+             for lv in solve.get("solution", {}).get("levels", [])], "rrrrrr")
+
+
+def _reflectance(doc: Doc, refl: dict, made: dict):
+    s = doc.section("reflectance", "Reflectance")
+    if not refl:
+        s.p("No reflectance.json.")
+        return
+    s.p(f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, n {refl.get('n')}, "
+        f"ks/kd {refl.get('ks_over_kd')}. Decision: {refl.get('decision', '–')}.")
+    rounds = figs.reflectance_rounds(refl)
+    if "reflectance" in made:
+        caption = ("Relative RMSE per round; the ring marks the round kept (reflectance.json: chosen_round "
+                   f"{refl.get('chosen_round')}).")
+        probes = [r for r in rounds if r["kind"] == "probe"]
+        if probes:
+            p = probes[0]
+            caption += (f" Round {p['round']} is the probe: reflectance fitted by LM with round 0's light fixed, on "
+                        f"{p['pixels']} pixels (its errors are over those pixels); it was "
+                        f"{'kept' if p['kept'] else 'not kept'}.")
+        s.fig(made["reflectance"].rel, "reflectance rounds", caption)
+    if rounds:
+        what = {"light": "light solved under this material", "probe": "probe (LM, light of round 0 fixed)"}
+        s.table(["round", "what", "material", "fit", "held-out", "kept"],
+                [[str(r["round"]), what[r["kind"]],
+                  f"{r['model']} kd {_rgb(r['material'].get('kd'))}"
+                  + (f", ks {_rgb(r['material'].get('ks'))}, n {_num(r['material'].get('n'), '.3g')}"
+                     if r["model"] != "lambert" else ""),
+                  _pct(r["fit_rmse"]), _pct(r["held_out_rmse"]), "**kept**" if r["kept"] else "not kept"]
+                 for r in rounds], "rlllrl")
+
+
+def _compare(doc: Doc, compare: dict | None, out: Path):
+    if not compare:
+        return
+    s = doc.section("bases", "The bases side by side")
+    s.p(f"Same pixels and normal equations ({compare.get('normal_equations_seconds', 0):.1f} s, not in the "
+        f"times below); R = {compare.get('resolution')}.")
+    s.table(["basis", "coefficients", "fit", "held-out", "all pixels", "time (s)"],
+            [[row["basis"], str(row["coefficients"]), _pct(row["fit_rmse"]), _pct(row["held_out_rmse"]),
+              _pct(row["all_pixels_rmse"]), f"{row['seconds']:.3f}"] for row in compare.get("rows", [])], "lrrrrr")
+    items = []
+    if (out / "compare.png").is_file():
+        items.append(("compare.png", "speed against error",
+                      "Held-out error against the solve's time (log-log); marker size grows with the coefficients."))
+    if (out / "compare_lights.png").is_file():
+        items.append(("compare_lights.png", "the bases' lights side by side",
+                      "Each basis' light on the cube cross (cropped to its texels), log tone-mapped at one scale "
+                      "(radiance at the colour bar's ticks); blue: negative radiance (a plain SH fit)."))
+    s.figs(items)
+
+
+def _outputs(out: Path) -> list[tuple[Path, dict, str]]:
+    """The relight and insert outputs: (json path, its data, 'relight' | 'insert')."""
+    found = []
+    for p in sorted(out.glob("*.json")):
+        if p.name in SOURCES:
+            continue
+        d = _json(p)
+        if not d:
+            continue
+        if "object_pixels" in d:
+            found.append((p, d, "insert"))
+        elif "view" in d and "light" in d:
+            found.append((p, d, "relight"))
+    return found
+
+
+def _relight_insert(doc: Doc, out: Path, figdir: Path, made: dict, keep: set):
+    found = _outputs(out)
+    if not found:
+        return
+    s = doc.section("outputs", "Relighting and insertion")
+    for p, d, kind in found:
+        name = p.stem
+        png = out / f"{name}.png"
+        if kind == "relight":
+            turned = (f", turned {d['rotate_deg']:g} deg" if d.get("rotate_deg") else "") + (
+                f", {d['light_exposure_stops']:+g} stops" if d.get("light_exposure_stops") else "")
+            light = "recovered" if d.get("light") == "recovered" else f"`{Path(str(d.get('light'))).name}`"
+            what = f"{light} light{turned}, " + ("the photo's view" if d.get("view") == "photo" else f"view {d.get('view')}")
+            s.h3(f"`{name}.png`: {what}", f"output-{name}")
+            items = [(png.name, f"{name}.png", f"the render ({d.get('pixels')} pixels, R = {d.get('resolution')})")] \
+                if png.is_file() else []
+            heat = figs.heat_figure(out / f"{name}_residual.png", f"{name}: |render - reference|",
+                                    figdir / f"{OUTPUT_PREFIX}{name}-residual.png", label="radiance")
+            if heat is not None:
+                made[f"{name}-residual"] = _rel(heat, out)
+                keep.add(heat.path.name)
+                white = heat.info["white"]
+                items.append((made[f"{name}-residual"].rel, f"{name}_residual.png",
+                              "|render - reference| (mean of R, G, B), white = "
+                              + (f"{white:.4g}" if white is not None else "10 % of the reference's 95th percentile")))
+            s.figs(items)
+            rows = [("light", f"{d.get('light')}{turned}"), ("view", str(d.get("view"))),
+                    ("pixels", str(d.get("pixels"))), ("cube map R", str(d.get("resolution"))),
+                    ("material", _material(d.get("material")))]
+            if "relative_rmse_vs_photo" in d:
+                rows += [("error vs reference", f"{_pct(d['relative_rmse_vs_photo'])} "
+                                                f"({Path(str(d.get('reference'))).name}, "
+                                                f"{d.get('compared_pixels')} pixels)"),
+                         ("bias vs reference", _pct(d.get("bias_vs_photo")))]
             else:
-                texels = haar.leaf_matrix(tree) @ coef
-            leaf_id = np.asarray(haar.leaf_matrix(tree).argmax(axis=1)).ravel()  # one leaf per texel
-            levels.append((int(key), texels, leaf_id, float(g.attrs["held_out_rmse"]), coef.shape[0]))
-    if not levels:
-        return None
-    n = len(levels)
-    cols = min(n, 4)
-    rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), squeeze=False)
-    top = max(float(np.percentile(t[t > 0], 99.5)) if np.any(t > 0) else 1.0 for _, t, _, _, _ in levels)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for ax, (lv, texels, leaf_id, held, k) in zip(axes.ravel(), levels):
-        cross, valid = cubemap.cross_image(texels, cube)
-        disp = images.tonemap(cross, -np.log2(top))
-        disp[~valid] = 0.15
-        ids, _ = cubemap.cross_image(leaf_id.astype(np.float64), cube, fill=-1)
-        up = max(1, 512 // disp.shape[1])  # enlarged, so that leaf outlines are thin lines between texels
-        disp = np.repeat(np.repeat(disp, up, axis=0), up, axis=1)
-        vert = (ids[:, 1:] != ids[:, :-1]) & valid[:, 1:] & valid[:, :-1]  # between columns c and c + 1
-        horiz = (ids[1:, :] != ids[:-1, :]) & valid[1:, :] & valid[:-1, :]
-        for r, c in zip(*np.nonzero(vert)):
-            disp[r * up:(r + 1) * up, (c + 1) * up] = (0.0, 0.8, 1.0)
-        for r, c in zip(*np.nonzero(horiz)):
-            disp[(r + 1) * up, c * up:(c + 1) * up] = (0.0, 0.8, 1.0)
-        ax.imshow(np.clip(disp, 0, 1), interpolation="nearest")
-        ax.set_title(f"level {lv}: {k} coefficients, held-out {100 * held:.2f} %", fontsize=8)
-    return _save(fig, dest)
+                rows.append(("error vs reference", "– (no reference: another light or view than the photo's)"))
+            s.numbers(rows)
+        else:
+            s.h3(f"`{name}.png`: {d.get('object')} inserted at {d.get('at')}", f"output-{name}")
+            items = [(png.name, f"{name}.png", "the photo with the object and its shadows")] if png.is_file() else []
+            heat = figs.heat_figure(out / f"{name}_shadow.png", f"{name}: shadow (relative darkening)",
+                                    figdir / f"{OUTPUT_PREFIX}{name}-shadow.png",
+                                    default_scale=figs.INSERT_SHADOW_WHITE, label="relative darkening")
+            if heat is not None:
+                made[f"{name}-shadow"] = _rel(heat, out)
+                keep.add(heat.path.name)
+                items.append((made[f"{name}-shadow"].rel, f"{name}_shadow.png",
+                              f"the darkening the object casts on the known geometry, white = "
+                              f"{100 * heat.info['white']:.0f} % darker"))
+            s.figs(items)
+            s.numbers([("object", f"{d.get('object')} at {d.get('at')}"),
+                       ("object pixels", f"{d['object_pixels']} px, shadow on {d.get('shadowed_pixels_5pct')} px "
+                                         f"(> 5 % darker)"),
+                       ("darkest shadow", _pct(-d["darkest_shadow"]) + " darker" if "darkest_shadow" in d else "–"),
+                       ("cube map R", str(d.get("resolution"))), ("light", str(d.get("light"))),
+                       ("object material", _material(d.get("object_material"))),
+                       ("scene material", _material(d.get("scene_material")))])
 
 
-def reflectance_figure(refl: dict, dest: Path) -> Path | None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rounds = refl.get("rounds") or []
-    if len(rounds) < 2:
-        return None
-    fig, ax = plt.subplots(figsize=(5, 3))
-    r = [x["round"] for x in rounds]
-    ax.plot(r, [100 * x["fit_rmse"] for x in rounds], "o-", label="fit")
-    ax.plot(r, [100 * x["held_out_rmse"] for x in rounds], "s--", label="held-out")
-    ax.set_xlabel("round (light, then reflectance)")
-    ax.set_ylabel("relative RMSE (%)")
-    ax.set_title(f"reflectance: {refl.get('model')}", fontsize=9)
-    ax.legend()
-    return _save(fig, dest)
+def _material(m) -> str:
+    if not isinstance(m, dict):
+        return "–"
+    text = f"{m.get('model')} kd {_rgb(m.get('kd'))}"
+    if m.get("model") != "lambert":
+        text += f", ks {_rgb(m.get('ks'))}, n {_num(m.get('n'), '.3g')}"
+    return text
 
 
-def report_stage(scene: SceneFiles, console: Console) -> Path:
+EXPORT_TOOLS = (  # folder, tool, how to use (README: Relight, insert, export; pipelines/io/exports.py)
+    ("mitsuba", "Mitsuba 3",
+     "put `emitter.xml`'s `<emitter>` into the scene's XML, with `light.exr` beside the scene file "
+     "(its `to_world` turns Mitsuba's +Y-up map to our +Z up)"),
+    ("blender", "Blender",
+     "World > Surface: Environment Texture (Equirectangular), open `light_equirect.exr` (world +Z up, "
+     "no rotation needed)"),
+    ("opengl", "OpenGL / three.js",
+     "the six faces are GL_TEXTURE_CUBE_MAP_POSITIVE_X ... NEGATIVE_Z in the order px, nx, py, ny, pz, nz "
+     "for a Y-up world ((x, y, z)_gl = (x, z, -y)); three.js: load them (EXRLoader) into a CubeTexture in "
+     "that order"),
+)
+
+
+def _exports(doc: Doc, out: Path):
+    ex = _json(out / "export" / "export.json")
+    if not ex:
+        return
+    s = doc.section("exports", "Exports")
+    energy = " ".join(_num(e) for e in ex.get("energy_rgb", []))
+    s.p(f"The {'recovered light' if ex.get('source') == 'recovered' else '`' + str(ex.get('source')) + '`'} "
+        f"in other tools' conventions, in `out/export/` (energy RGB {energy}; lat-long {ex.get('latlong_height')} "
+        f"rows, cube faces {ex.get('face_size')} px).")
+    files = [str(f) for f in ex.get("files", [])]
+    rows = []
+    for folder, tool, how in EXPORT_TOOLS:
+        mine = [f.split("/export/", 1)[-1] for f in files if f"/export/{folder}/" in f or f.startswith(f"{folder}/")]
+        if mine:
+            rows.append([tool, ", ".join(f"`{m}`" for m in mine), how])
+    s.table(["tool", "files (in out/export/)", "how to use"], rows, "lll")
+
+
+@dataclass
+class Made:
+    path: Path
+    rel: str
+    info: dict
+
+
+def _rel(fig: figs.Figure, out: Path) -> Made:
+    return Made(fig.path, fig.path.relative_to(out).as_posix(), fig.info)
+
+
+def build(scene: SceneFiles) -> tuple[Doc, dict]:
+    """Read the results, draw the figures into out/report/ and lay out the report."""
+    from pipelines.light.cubemap import CubeMap
+
     out = scene.out
     solve = _json(require(out / "solve_report.json", "run wavelight solve first"))
     refl = _json(out / "reflectance.json") or solve.get("reflectance") or {}
     compare = _json(out / "compare.json")
     camera = _json(scene.camera) if scene.camera.is_file() else None
     pose = _json(scene.pose) if scene.pose.is_file() else None
-    t0 = time.monotonic()
+    _outputs(out)  # a corrupt relight/insert JSON is an error before anything is drawn
+    _json(out / "export" / "export.json")
     figdir = out / "report"
-    figures = {}
-    for key, make in (("overview", lambda p: overview_figure(out, p)), ("levels", lambda p: levels_figure(out, p)),
-                      ("reflectance", lambda p: reflectance_figure(refl, p))):
-        path = make(figdir / f"{key}.png")
-        if path is not None:
-            figures[key] = path.relative_to(out).as_posix()
-    sol = solve.get("solution", {})
-    lines = [f"# wavelight report: {scene.root.name}", ""]
-    lines += [f"Photo `{solve.get('photo')}`; {solve.get('pixels', {}).get('used')} pixels used "
-              f"({solve.get('pixels', {}).get('fit')} fitted, {solve.get('pixels', {}).get('held_out')} held out); "
-              f"light on a cube map of R = {solve.get('options', {}).get('resolution')} "
-              f"({'hemisphere' if solve.get('options', {}).get('hemisphere') else 'sphere'}). "
-              f"{solve.get('scale_ambiguity', '')}.", ""]
-    if camera and "calibration" in camera:
-        c = camera["calibration"]
-        lines += [f"**Camera** (wavelight calibrate): fx {camera['fx']:.2f}, fy {camera['fy']:.2f}, cx {camera['cx']:.2f}, "
-                  f"cy {camera['cy']:.2f}; RMS {c['rms_px']:.3f} px over {len(c['used'])} photos"
-                  + (f"; rejected: {', '.join(c['rejected'])}" if c.get("rejected") else "")
-                  + (f"; warnings: {'; '.join(c['warnings'])}" if c.get("warnings") else "") + ".", ""]
-    if pose and "registration" in pose:
-        g = pose["registration"]
-        e = g.get("edge_refinement") or {}
-        lines += [f"**Pose** (wavelight register): {g['method']}, {g['inliers']} of {g['points']} points, RMS "
-                  f"{g['rms_px']:.3f} px" + (f"; refined against the photo's edges (outline on edges "
-                                             f"{100 * e['outline_on_edges_before']:.0f} -> "
-                                             f"{100 * e['outline_on_edges_after']:.0f} %)" if e.get("accepted") else "")
-                  + ".", ""]
-    lines += ["## Result", ""]
-    if "overview" in figures:
-        lines += [f"![input, relit, residual, light, observability]({figures['overview']})", ""]
-    bd = solve.get("brightest_direction", {})
-    relit = solve.get("relit", {})
-    lines += ["| | |", "|---|---|",
-              f"| basis | {solve.get('basis')} ({sol.get('coefficients')} coefficients, level {sol.get('chosen_level')}) |",
-              f"| relit error (all used pixels) | {_pct(relit.get('relative_rmse_vs_photo'))} |",
-              f"| held-out error | {_pct(sol.get('held_out_rmse'))} |",
-              f"| brightest direction | theta {bd.get('theta_deg', float('nan')):.1f} deg, "
-              f"phi {bd.get('phi_deg', float('nan')):.1f} deg |",
-              f"| unobservable texels | {solve.get('observability', {}).get('unobservable')} of "
-              f"{solve.get('observability', {}).get('texels')} |",
-              f"| time | normal equations {solve.get('normal_equations_seconds', 0):.1f} s, light "
-              f"{sol.get('seconds', 0):.2f} s, whole solve {solve.get('seconds', 0):.1f} s |", ""]
-    if solve.get("warnings"):
-        lines += ["**What the photo cannot tell:**", ""] + [f"- {w}" for w in solve["warnings"]] + [""]
-    lines += ["## Refinement, level by level", ""]
-    if "levels" in figures:
-        lines += [f"![levels]({figures['levels']})", "",
-                  "Each panel: that level's light on the cube cross (+Z in the middle of the top row's block, "
-                  "the four sides below it); blue lines are the tree's leaves.", ""]
-    lines += ["| level | coefficients | leaves | fit | held-out | seconds |", "|---:|---:|---:|---:|---:|---:|"]
-    for lv in sol.get("levels", []):
-        lines.append(f"| {lv['level']} | {lv['coefficients']} | {lv.get('leaves', '–')} | {_pct(lv['fit_rmse'])} | "
-                     f"{_pct(lv.get('held_out_rmse'))} | {lv['seconds']:.3f} |")
-    lines += ["", "## Reflectance", ""]
-    if refl:
-        lines += [f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, n {refl.get('n')}, "
-                  f"ks/kd {refl.get('ks_over_kd')}. Decision: {refl.get('decision', '–')}.", ""]
-        if "reflectance" in figures:
-            lines += [f"![reflectance rounds]({figures['reflectance']})", ""]
-    if compare:
-        lines += ["## The bases side by side", "",
-                  f"Same pixels and normal equations ({compare.get('normal_equations_seconds', 0):.1f} s, not in the "
-                  f"times below).", "", "| basis | coefficients | fit | held-out | all pixels | time (s) |",
-                  "|---|---:|---:|---:|---:|---:|"]
-        for row in compare.get("rows", []):
-            lines.append(f"| {row['basis']} | {row['coefficients']} | {_pct(row['fit_rmse'])} | "
-                         f"{_pct(row['held_out_rmse'])} | {_pct(row['all_pixels_rmse'])} | {row['seconds']:.3f} |")
-        if (out / "compare_lights.png").is_file():
-            lines += ["", "![the bases' lights side by side](compare_lights.png)"]
-        if (out / "compare.png").is_file():
-            lines += ["", "![speed against error](compare.png)"]
-        lines.append("")
-    extras = sorted(p for p in out.glob("*.json") if p.name not in (
-        "solve_report.json", "reflectance.json", "compare.json", "report.json"))
-    shown = [(p, _json(p)) for p in extras]
-    shown = [(p, d) for p, d in shown if d and (("view" in d and "light" in d) or "object_pixels" in d)]
-    if shown:
-        lines += ["## Relighting and insertion", "", "| output | what | error vs reference |", "|---|---|---:|"]
-        for p, d in shown:
-            turned = (f", turned {d['rotate_deg']:g} deg" if d.get("rotate_deg") else "") + (
-                f", {d['light_exposure_stops']:+g} stops" if d.get("light_exposure_stops") else "")
-            what = (f"object at {d['at']}, {d['object_pixels']} px, shadow on {d['shadowed_pixels_5pct']} px"
-                    if "object_pixels" in d else f"{d.get('light')} light{turned}, view {d.get('view')}")
-            ref = f"{_pct(d.get('relative_rmse_vs_photo'))} ({Path(d['reference']).name})" \
-                if "relative_rmse_vs_photo" in d else "–"
-            lines.append(f"| `{p.stem}.png` | {what} | {ref} |")
-        lines.append("")
+    opts = solve.get("options", {})
+    try:
+        cube = CubeMap(int(opts["resolution"]), bool(opts.get("hemisphere", True)))
+    except (KeyError, TypeError, ValueError):
+        cube = None
+    made: dict[str, Made] = {}
+    keep: set[str] = set()
+
+    def add(key, fig):
+        if fig is not None:
+            made[key] = _rel(fig, out)
+            keep.add(fig.path.name)
+
+    add("overview", figs.overview_figure(out, solve, cube, figdir / "overview.png"))
+    photo, relit, _ = figs.photo_and_relit(out, solve)
+    if photo is not None and relit is not None:
+        add("photo", figs.Figure(figs.save_display(photo, figdir / "photo.png")))
+        add("relit", figs.Figure(figs.save_display(relit, figdir / "relit.png")))
+    add("light", figs.light_figure(out, solve, figdir / "light.png"))
+    add("levels", figs.levels_figure(out, figdir / "levels.png"))
+    add("reflectance", figs.reflectance_figure(refl, figdir / "reflectance.png"))
+    doc = Doc(f"wavelight report: {scene.root.name}")
+    _intro(doc, solve, camera, pose)
+    _result(doc, solve, made)
+    _light(doc, solve, made)
+    _levels(doc, solve, made)
+    _reflectance(doc, refl, made)
+    _compare(doc, compare, out)
+    _relight_insert(doc, out, figdir, made, keep)
+    _exports(doc, out)
+    for old in figdir.glob("*.png"):  # figures of earlier runs whose inputs are gone
+        if old.name not in keep:
+            old.unlink()
+    root = scene.root
+    read = [out / n for n in SOURCES[:3]] + [p for p, _, _ in _outputs(out)] + [out / "export" / "export.json",
+                                                                                  scene.camera, scene.pose]
+    doc.sources = [p.relative_to(root).as_posix() for p in read if p.is_file()]
+    return doc, made
+
+
+def report_stage(scene: SceneFiles, console: Console) -> Path:
+    from .report_html import to_html
+
+    t0 = time.monotonic()
+    doc, made = build(scene)
+    out = scene.out
     md = out / "report.md"
     with atomic_output(md) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    console.result(f"report: {md} ({len(figures)} figures in {figdir.name}/, {time.monotonic() - t0:.1f} s)")
+        tmp.write_text(to_markdown(doc))
+    page = out / "report.html"
+    with atomic_output(page) as tmp:
+        tmp.write_text(to_html(doc, out), encoding="utf-8")
+    n = len(list((out / "report").glob("*.png")))
+    console.result(f"report: {md} and {page.name} ({n} figures in report/, {time.monotonic() - t0:.1f} s)")
     return md

@@ -228,40 +228,69 @@ def _write_lights(path: Path, lights: list, cube) -> Path:
 
 
 def compare_lights_figure(lights: list, cube, path: Path) -> Path:
-    """Each basis' light on the cube cross, side by side, at one exposure (negative radiance of a
-    plain SH fit shown in blue)."""
+    """Each basis' light on the cube cross (cropped to its texels), side by side, log tone-mapped at
+    one scale (`outputs.log_display`) with its colour bar; negative radiance of a plain SH fit in blue."""
     from pipelines.io.files import atomic_output
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import ListedColormap, LogNorm
+    from matplotlib.ticker import FuncFormatter
 
     from pipelines.light import cubemap
-    from pipelines.io import images
 
-    # one exposure for all: the sky's level (a sun saturates; its place shows)
-    top = max(float(np.percentile(np.abs(t[t != 0]), 95)) if np.any(t != 0) else 1.0 for _, t in lights)
-    fig, axes = plt.subplots(2, (len(lights) + 1) // 2, figsize=(3.4 * ((len(lights) + 1) // 2), 5.4), squeeze=False)
+    from ..outputs import log_colours, log_display, log_range
+
+    ranges = [log_range(np.clip(t, 0, None)) for _, t in lights if np.any(np.asarray(t) > 0)] or [(0.1, 1.0)]
+    lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
+    _, valid = cubemap.cross_image(np.zeros(cube.n_texels), cube)
+    rows, cols = np.nonzero(valid)
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    ncol = (len(lights) + 1) // 2
+    aspect = (rows.max() + 1 - rows.min()) / (cols.max() + 1 - cols.min())
+    fig, axes = plt.subplots(2, ncol, figsize=(3.4 * ncol + 0.8, 2 * (3.4 * aspect + 0.4)), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for ax, (label, texels) in zip(axes.ravel(), lights):
-        cross, valid = cubemap.cross_image(texels, cube)
-        disp = images.tonemap(np.clip(cross, 0, None), -np.log2(top))
-        negative = valid & (np.asarray(cross).min(axis=-1) < -1e-6 * top)
+        cross, _ = cubemap.cross_image(texels, cube)
+        disp, _, _ = log_display(np.clip(cross, 0, None), lo, hi)
+        negative = valid & (np.asarray(cross).min(axis=-1) < -1e-6 * hi)
         disp[negative] = (0.1, 0.2, 0.9)
-        disp[~valid] = 0.15
-        ax.imshow(np.clip(disp, 0, 1), interpolation="nearest")
+        disp[~valid] = 1.0
+        ax.imshow(np.clip(disp[crop], 0, 1), interpolation="nearest")
         ax.set_title(label, fontsize=9)
+    bar = fig.colorbar(ScalarMappable(LogNorm(lo, hi), ListedColormap(log_colours(256))), ax=list(axes.ravel()),
+                       fraction=0.025, pad=0.02)
+    bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}" if v < 1000 else f"{v:.0f}"))
+    bar.ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
+    bar.ax.tick_params(labelsize=7)
+    bar.set_label("radiance (brightest channel; log scale)", fontsize=7)
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png", facecolor="white")
     plt.close(fig)
     return path
 
 
 def compare_plot(table: dict, path: Path) -> Path:
+    """Held-out error against solve time, one labelled marker per basis (`compare_figure`)."""
     from pipelines.io.files import atomic_output
 
+    import matplotlib.pyplot as plt
+
+    fig = compare_figure(table)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def compare_figure(table: dict):
+    """The compare plot as a matplotlib figure: markers sized by the coefficients, each labelled
+    with its basis where the label overlaps no other label, no marker and stays inside the axes
+    (`place_labels`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -270,24 +299,83 @@ def compare_plot(table: dict, path: Path) -> Path:
     from matplotlib.ticker import FuncFormatter, LogLocator
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=100)
+    points = []
     for k, r in enumerate(table["rows"]):
         err = r["held_out_rmse"] if r["held_out_rmse"] is not None else r["all_pixels_rmse"]
-        ax.scatter(max(r["seconds"], 1e-4), 100 * err, s=30 + 4 * np.sqrt(r["coefficients"]))
-        ax.annotate(f"{r['basis']} ({r['coefficients']})", (max(r["seconds"], 1e-4), 100 * err),
-                    textcoords="offset points", xytext=(6, 4 + 9 * (k % 3)), fontsize=8)
+        x, y, size = max(r["seconds"], 1e-4), 100 * err, 30 + 4 * np.sqrt(r["coefficients"])
+        ax.scatter(x, y, s=size, color=f"C{k}", zorder=3)
+        points.append((x, y, size, f"{r['basis']} ({r['coefficients']})", f"C{k}"))
     ax.set_xscale("log")
     ax.set_yscale("log")
     plain = FuncFormatter(lambda v, _: f"{v:g}")
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_formatter(plain)
-        axis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+        axis.set_minor_locator(LogLocator(subs=(2.0, 3.0, 5.0)))
         axis.set_minor_formatter(plain)
+    ax.margins(x=0.25, y=0.2)  # room for the labels inside the axes
     ax.set_xlabel("solve time after the normal equations (s)")
     ax.set_ylabel("held-out relative RMSE (%, log)")
     ax.set_title(f"{Path(table['scene']).name}, R = {table['resolution']}")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    place_labels(fig, ax, points)
+    return fig
+
+
+def place_labels(fig, ax, points) -> list:
+    """Label each (x, y, marker size, text, colour) point at the first of a ring of positions
+    around it, nearest first, whose text box is inside the axes and clear of every marker and of
+    the labels placed before; a label away from its marker gets a leader line. Returns the labels."""
+    from matplotlib.transforms import Bbox
+
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    px_per_pt = fig.dpi / 72.0
+    centres = ax.transData.transform([(x, y) for x, y, *_ in points])
+    radii = [0.5 * np.sqrt(size) * px_per_pt for _, _, size, *_ in points]
+    markers = [Bbox.from_extents(cx - r, cy - r, cx + r, cy + r) for (cx, cy), r in zip(centres, radii)]
+    pad = 2.0
+
+    def overlap(a, b) -> float:
+        w = min(a.x1, b.x1) - max(a.x0, b.x0) + pad
+        h = min(a.y1, b.y1) - max(a.y0, b.y0) + pad
+        return max(w, 0.0) * max(h, 0.0)
+
+    def outside(box) -> float:
+        return sum(max(v, 0.0) for v in (frame.x0 - box.x0, box.x1 - frame.x1, frame.y0 - box.y0, box.y1 - frame.y1))
+
+    directions = [(1, 0, "left", "center"), (-1, 0, "right", "center"), (0, 1, "center", "bottom"),
+                  (0, -1, "center", "top"), (0.7, 0.7, "left", "bottom"), (-0.7, 0.7, "right", "bottom"),
+                  (0.7, -0.7, "left", "top"), (-0.7, -0.7, "right", "top")]
+    placed, labels = [], []
+    for k, (x, y, size, text, colour) in enumerate(points):
+        r_pt = 0.5 * np.sqrt(size)
+        best = None
+        for gap in (3, 10, 20, 32, 48, 66):
+            for dx, dy, ha, va in directions:
+                off = ((r_pt + gap) * dx, (r_pt + gap) * dy)
+                label = ax.annotate(text, (x, y), xytext=off, textcoords="offset points", ha=ha, va=va,
+                                    fontsize=8, color=colour)
+                box = label.get_window_extent(renderer)
+                cost = (sum(overlap(box, b) for b in placed) + sum(overlap(box, m) for m in markers)
+                        + 1e3 * outside(box))
+                if best is None or cost < best[0]:
+                    if best is not None:
+                        best[1].remove()
+                    best = (cost, label, box, gap, off, ha, va)
+                else:
+                    label.remove()
+                if best[0] == 0:
+                    break
+            if best[0] == 0:
+                break
+        _, label, box, gap, off, ha, va = best
+        if gap > 10:  # away from its marker: a leader line
+            label.remove()
+            label = ax.annotate(text, (x, y), xytext=off, textcoords="offset points", ha=ha, va=va, fontsize=8,
+                                color=colour, arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.7,
+                                                          "shrinkA": 1, "shrinkB": radii[k] / px_per_pt})
+        placed.append(box)
+        labels.append(label)
+    return labels
