@@ -66,8 +66,12 @@ def mitsuba_lookup(image: np.ndarray, directions: np.ndarray, to_world: np.ndarr
 
 
 def mitsuba_xml(filename: str, scale: float = 1.0) -> str:
+    """The envmap emitter as a file Mitsuba 3 loads by itself (`mi.load_file`) or from a scene
+    (`<include filename="emitter.xml"/>`, `filename` then resolves next to it), or that is pasted
+    into a scene. Mitsuba's parser requires a `version` on a file's root element (3.9: "missing
+    version attribute in root element <emitter>" without it); inside a scene it is accepted too."""
     m = " ".join(f"{x:g}" for x in MITSUBA_TO_WORLD.ravel())
-    return (f'<emitter type="envmap">\n'
+    return (f'<emitter type="envmap" version="3.0.0">\n'
             f'    <!-- wavelight light (world +Z up); to_world puts the map\'s up (local +Y) on world +Z -->\n'
             f'    <string name="filename" value="{filename}"/>\n'
             f'    <float name="scale" value="{scale:g}"/>\n'
@@ -93,6 +97,94 @@ def blender_lookup(image: np.ndarray, directions: np.ndarray) -> np.ndarray:
     v = 0.5 + np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1])) / np.pi
     row_from_bottom = np.floor(v * H).astype(int)
     return _read(image, H - 1 - row_from_bottom, np.floor(u * W).astype(int))
+
+
+BLENDER_WORLD_SCRIPT = '''"""wavelight: light this Blender scene with the exported light.
+
+    blender --python setup_world.py                  a new scene lit by it
+    blender my.blend --python setup_world.py         an existing scene (then save it)
+    or open this file in Blender's Text Editor and press Run Script.
+
+Makes the scene's World "wavelight": Texture Coordinate (Generated) -> Mapping -> Environment
+Texture of {image!r} (the file next to this script, equirectangular, linear) -> Background
+(strength 1) -> World Output. The image is wavelight's light in Blender's convention (world +Z
+up, linear radiance: a white diffuse patch facing up under a uniform sky of 1 renders 1); the
+Mapping node's Z rotation turns the light about +Z (0 = as recovered). Rerunning replaces the
+world's nodes.
+"""
+
+import os
+
+import bpy
+
+IMAGE = {image!r}
+WORLD = "wavelight"
+
+
+def script_folder():
+    """This script's folder: from __file__ (blender --python, runpy), or, in the Text Editor,
+    from the text block's file (__file__ is then its name or its path, maybe //-relative)."""
+    name = globals().get("__file__") or ""
+    for candidate in (name, bpy.path.abspath(name)):
+        if candidate and os.path.isfile(candidate):
+            return os.path.dirname(os.path.abspath(candidate))
+    for text in bpy.data.texts:
+        path = bpy.path.abspath(text.filepath) if text.filepath else ""
+        if path and os.path.isfile(path) and (text.name == os.path.basename(name) or path == name):
+            return os.path.dirname(os.path.abspath(path))
+    raise RuntimeError("wavelight: cannot tell where setup_world.py is; run it from its file "
+                       "(blender --python setup_world.py) or open it from disk in the Text Editor")
+
+
+def setup_world(scene=None, image_path=None):
+    scene = scene or bpy.context.scene
+    image_path = image_path or os.path.join(script_folder(), IMAGE)
+    if not os.path.isfile(image_path):
+        raise FileNotFoundError(f"wavelight: {{image_path}} not found (keep it next to setup_world.py)")
+    world = bpy.data.worlds.get(WORLD) or bpy.data.worlds.new(WORLD)
+    if world.node_tree is None:  # Blender < 5: a world needs use_nodes for its tree
+        world.use_nodes = True
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    nodes.clear()
+    coords = nodes.new("ShaderNodeTexCoord")
+    mapping = nodes.new("ShaderNodeMapping")
+    mapping.vector_type = "POINT"
+    env = nodes.new("ShaderNodeTexEnvironment")
+    env.image = bpy.data.images.load(image_path, check_existing=True)
+    for space in ("Linear Rec.709", "Linear"):  # the colour space's name in Blender >= 4 / < 4
+        try:
+            env.image.colorspace_settings.name = space
+            break
+        except TypeError:
+            continue
+    env.projection = "EQUIRECTANGULAR"
+    env.interpolation = "Linear"
+    background = nodes.new("ShaderNodeBackground")
+    background.inputs["Strength"].default_value = 1.0
+    output = nodes.new("ShaderNodeOutputWorld")
+    links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+    links.new(mapping.outputs["Vector"], env.inputs["Vector"])
+    links.new(env.outputs["Color"], background.inputs["Color"])
+    links.new(background.outputs["Background"], output.inputs["Surface"])
+    for x, node in zip(range(0, 1000, 250), (coords, mapping, env, background)):
+        node.location = (x - 800, 0)
+    output.location = (200, 0)
+    scene.world = world
+    print(f"wavelight: world {{world.name!r}} lit by {{image_path}}")
+    return world
+
+
+if __name__ == "__main__":
+    setup_world()
+'''
+
+
+def blender_world_script(image_name: str) -> str:
+    """setup_world.py for Blender: sets the scene's World to the exported equirectangular image
+    `image_name`, looked up next to the script (see the script's docstring for how to run it)."""
+    if any(c in image_name for c in "/\\\n\r") or not image_name:
+        raise ValueError(f"image_name must be a bare file name, got {image_name!r}")
+    return BLENDER_WORLD_SCRIPT.format(image=image_name)
 
 
 # -- OpenGL / three.js cube faces ----------------------------------------------------------------------------

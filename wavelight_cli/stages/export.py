@@ -11,7 +11,7 @@ from ..console import Console
 from ..outputs import write_json
 from ..scene import SceneFiles, require, solved_light
 
-VERSION = 2
+VERSION = 3  # 3: emitter.xml loadable by itself (version attribute), blender/setup_world.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
 
@@ -62,6 +62,10 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                 outputs.append(xml)
             if "blender" in formats:
                 outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
+                script = out / "blender" / "setup_world.py"
+                with atomic_output(script) as tmp:
+                    tmp.write_text(ex.blender_world_script("light_equirect.exr"))
+                outputs.append(script)
             if "opengl" in formats:
                 for name, face in ex.to_gl_faces(texels, cube).items():
                     outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
