@@ -5,9 +5,15 @@ Our exchange format (DESIGN §2): lat-long, row 0 = zenith, theta = pi (r + 1/2)
 phi = 2 pi (c + 1/2) / W from +X towards +Y; world +Z up.
 
 - Mitsuba 3 `envmap`: its local frame is +Y up; a direction v (local) reads the image at
-  u = atan2(v.x, -v.z) / 2pi (wrapped to [0, 1)), v = acos(v.y) / pi (row 0 at the top). With the
-  emitter's to_world = MITSUBA_TO_WORLD (local +Y -> world +Z, local -Z -> world +X) our image
-  needs only its columns mirrored.
+  u = atan2(v.x, -v.z) / 2pi (wrapped to [0, 1)), v = acos(v.y) / pi, bilinearly, with column c at
+  u = (c + 1/2) / W (wrapping) but row r at v = r / (H - 1): its first and last rows sit on the
+  poles, not at pixel centres (src/emitters/envmap.cpp: uv.x -= 0.5 / W; uv *= (W, H - 1)). Our
+  image as it is would be read up to half a row towards the poles (0.6 deg at 50 deg from the
+  zenith on a 64-row map; a glossy sphere 1.9 % off). So the export has 2H + 1 rows: row 2r + 1 is
+  our row r (at its centre theta, exactly), row 2r our edge between rows r - 1 and r (their mean;
+  the poles repeat rows 0 and H - 1). Mitsuba then reads our radiance exactly at our pixel centres
+  and interpolates between them as Blender's Linear does. With the emitter's to_world =
+  MITSUBA_TO_WORLD (local +Y -> world +Z, local -Z -> world +X) the columns are ours mirrored.
 - Blender (Cycles/EEVEE world, Environment Texture, equirectangular): world +Z up;
   u = 0.5 - atan2(d.y, d.x) / 2pi, v = 0.5 + atan2(d.z, hypot(d.x, d.y)) / pi with v = 0 at the
   image's bottom row: our image with columns mirrored and turned by half a turn.
@@ -52,17 +58,34 @@ def latlong_lookup(image: np.ndarray, directions: np.ndarray) -> np.ndarray:
 # -- Mitsuba 3 -------------------------------------------------------------------------------------------
 
 def to_mitsuba(latlong: np.ndarray) -> np.ndarray:
-    """The image for Mitsuba's envmap with to_world = MITSUBA_TO_WORLD."""
-    return np.ascontiguousarray(np.asarray(latlong)[:, ::-1])
+    """The image for Mitsuba's envmap with to_world = MITSUBA_TO_WORLD: (2H + 1, W) rows on
+    Mitsuba's row grid (see the module's docstring), columns mirrored."""
+    img = np.asarray(latlong)
+    H = img.shape[0]
+    out = np.empty((2 * H + 1,) + img.shape[1:], dtype=np.result_type(img.dtype, np.float32))
+    out[1::2] = img
+    out[2:-1:2] = 0.5 * (img[:-1] + img[1:])
+    out[0], out[-1] = img[0], img[-1]
+    return np.ascontiguousarray(out[:, ::-1])
 
 
 def mitsuba_lookup(image: np.ndarray, directions: np.ndarray, to_world: np.ndarray = MITSUBA_TO_WORLD) -> np.ndarray:
-    """What Mitsuba's envmap reads for world directions (nearest pixel)."""
-    H, W = image.shape[:2]
+    """What Mitsuba's envmap reads for world directions: its bilinear lookup (columns at
+    u = (c + 1/2) / W, wrapping; rows at v = r / (H - 1))."""
+    img = np.asarray(image, np.float64)
+    H, W = img.shape[:2]
     local = np.asarray(directions, np.float64) @ to_world[:3, :3]  # R^T d for each row
-    u = _wrap01(np.arctan2(local[..., 0], -local[..., 2]) / (2 * np.pi))
-    v = np.arccos(np.clip(local[..., 1], -1, 1)) / np.pi
-    return _read(image, np.floor(v * H).astype(int), np.floor(u * W).astype(int))
+    u = _wrap01(np.arctan2(local[..., 0], -local[..., 2]) / (2 * np.pi) - 0.5 / W) * W
+    v = np.arccos(np.clip(local[..., 1], -1, 1)) / np.pi * (H - 1)
+    c0 = np.minimum(np.floor(u).astype(int), W - 1)
+    r0 = np.minimum(np.floor(v).astype(int), H - 2)
+    wu, wv = u - c0, v - r0
+    if img.ndim == 3:
+        wu, wv = wu[..., None], wv[..., None]
+    c1 = (c0 + 1) % W
+    top = (1 - wu) * img[r0, c0] + wu * img[r0, c1]
+    bottom = (1 - wu) * img[r0 + 1, c0] + wu * img[r0 + 1, c1]
+    return (1 - wv) * top + wv * bottom
 
 
 def mitsuba_xml(filename: str, scale: float = 1.0) -> str:

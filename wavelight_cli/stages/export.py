@@ -11,7 +11,7 @@ from ..console import Console
 from ..outputs import write_json
 from ..scene import SceneFiles, require, solved_light
 
-VERSION = 3  # 3: emitter.xml loadable by itself (version attribute), blender/setup_world.py
+VERSION = 3  # 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
 
