@@ -90,12 +90,15 @@ def mitsuba_lookup(image: np.ndarray, directions: np.ndarray, to_world: np.ndarr
 
 def mitsuba_xml(filename: str, scale: float = 1.0) -> str:
     """The envmap emitter as a file Mitsuba 3 loads by itself (`mi.load_file`) or from a scene
-    (`<include filename="emitter.xml"/>`, `filename` then resolves next to it), or that is pasted
-    into a scene. Mitsuba's parser requires a `version` on a file's root element (3.9: "missing
-    version attribute in root element <emitter>" without it); inside a scene it is accepted too."""
+    (`<include filename="emitter.xml"/>`; `filename` then resolves next to it). Mitsuba's parser
+    requires a `version` on a file's root element (3.9: "missing version attribute in root element
+    <emitter>" without it) and refuses one on an inner element ("unexpected attribute"), so pasted
+    into a scene the element loses it (the comment says so)."""
     m = " ".join(f"{x:g}" for x in MITSUBA_TO_WORLD.ravel())
     return (f'<emitter type="envmap" version="3.0.0">\n'
-            f'    <!-- wavelight light (world +Z up); to_world puts the map\'s up (local +Y) on world +Z -->\n'
+            f'    <!-- wavelight light (world +Z up); to_world puts the map\'s up (local +Y) on world +Z.\n'
+            f'         Load this file (mi.load_file) or <include filename="emitter.xml"/> it; pasted into a\n'
+            f'         scene, drop version="3.0.0" above. -->\n'
             f'    <string name="filename" value="{filename}"/>\n'
             f'    <float name="scale" value="{scale:g}"/>\n'
             f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'

@@ -42,7 +42,8 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
             if light_path is not None:
                 env = images.read_latlong(light_path)  # lat-long exports keep its resolution
                 cube = cubemap.CubeMap(face_size or 64, hemisphere=False)
-                texels = cubemap.latlong_to_cube(env, cube)
+                # only the OpenGL faces need the cube map (its resampling: ~40 s at 64 x 64 faces)
+                texels = cubemap.latlong_to_cube(env, cube) if "opengl" in formats else None
             else:
                 texels, cube, _ = solved_light(scene)
                 env = cubemap.cube_to_latlong(texels, cube, height or max(64, 4 * cube.resolution))
