@@ -53,7 +53,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# everything but the slow full-resolution checks against Mitsuba
+# everything but the slow full-resolution checks against Mitsuba and the Blender renders
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 

@@ -1,13 +1,14 @@
 """The scenes of tests/test_exports_tools.py on wavelight's side, and how to render them in the tools.
 
 A camera (Blender's convention: it looks along its local -Z with +Y up, horizontal sensor fit, the
-principal point at the image's centre) and a unit sphere, lit by a light given as wavelight's lat-long
-(README: Conventions). Here: the per-pixel rays of that camera, the sphere's normals and view
-directions at each pixel's centre, wavelight's render of them (`pipelines.model.render.transport`
-with V = 1: a lone sphere does not shadow itself), a numerical GGX reference for glossy spheres
-(isolated in `GLOSSY_REFERENCE` so that it can later be pointed at wavelight's own microfacet
-model), and the runners: Blender (Cycles, CPU) in a subprocess of a Python that has `bpy`, and
-Mitsuba 3 (scalar_rgb) in process.
+principal point at the image's centre) and unit spheres, lit by a light given as wavelight's
+lat-long (README: Conventions). Here: the rays through each pixel's footprint (both tools integrate
+the pixel's area), the spheres' normals and view directions there, wavelight's render of them
+(`pipelines.model.render.transport` with V = 1: a lone sphere does not shadow itself), a numerical
+GGX reference for glossy spheres (isolated in `GLOSSY_REFERENCE` so that it can later be pointed at
+wavelight's own microfacet model), the sun's direction from a ball's shadow and its prediction from
+a lat-long, and the runners: Blender (Cycles, CPU) in a subprocess of a Python that has `bpy`
+(tests/blender_render.py), and Mitsuba 3 (scalar_rgb) in process.
 """
 
 from __future__ import annotations

@@ -177,6 +177,7 @@ def setup_world(scene=None, image_path=None):
     mapping.vector_type = "POINT"
     env = nodes.new("ShaderNodeTexEnvironment")
     env.image = bpy.data.images.load(image_path, check_existing=True)
+    env.image.reload()  # a rerun after a new export reads the new file
     for space in ("Linear Rec.709", "Linear"):  # the colour space's name in Blender >= 4 / < 4
         try:
             env.image.colorspace_settings.name = space
