@@ -23,8 +23,10 @@ factory settings; nothing here knows about wavelight:
             shadow nor reflect each other)]
 
 Everything that could change the numbers is fixed: no denoising, no adaptive sampling, no clamping,
-a box pixel filter of width 0.01 px (each sample at the pixel's centre, like wavelight), exposure 0,
-view transform Standard (the EXR is linear either way), the image read as linear Rec.709.
+a box pixel filter (one pixel wide whatever filter_width says -- measured: the Normal pass is the
+pixel-area mean of the sphere's normals -- so each pixel integrates its area, as the references
+do), exposure 0, view transform Standard (the EXR is linear either way), the image read as linear
+Rec.709.
 """
 
 from __future__ import annotations
@@ -167,7 +169,7 @@ def build(spec: dict):
     c.use_adaptive_sampling = False
     c.use_denoising = False
     c.pixel_filter_type = "BOX"
-    c.filter_width = 0.01
+    c.filter_width = 1.0  # the box is one pixel wide anyway
     c.sample_clamp_direct = 0.0
     c.sample_clamp_indirect = 0.0
     c.max_bounces = 1  # a lone convex object: nothing to bounce off; 1 keeps BSDF-sampled world hits
