@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 DEMO   ?= build/demo
 SCENE  ?= spot_sun
 
-.PHONY: venv demo test test-fast bench clean
+.PHONY: venv venv-blender demo test test-fast bench clean
 
 venv: $(STAMP)
 
@@ -15,6 +15,19 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	rm -f $(VENV)/.installed-*
+	touch $@
+
+# Blender as a Python module (bpy) for tests/test_exports_tools.py, in its own venv: bpy pins
+# numpy < 2 and wavelight needs numpy >= 2. ~375 MB download, ~1 GB on disk, ~50 s; the tests find
+# .venv-blender/bin/python (or $WAVELIGHT_BPY_PYTHON) and skip the Blender checks without it.
+BLENDER_VENV ?= .venv-blender
+BPY          ?= bpy==5.0.1
+venv-blender: $(BLENDER_VENV)/.installed-bpy
+
+$(BLENDER_VENV)/.installed-bpy:
+	test -x $(BLENDER_VENV)/bin/python || $(PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/python -m pip install --quiet '$(BPY)'
+	$(BLENDER_VENV)/bin/python -c 'import bpy; print("bpy", bpy.app.version_string)'
 	touch $@
 
 # The main job on the bundled sample scene: a fresh copy in $(DEMO)/$(SCENE), every stage, results printed.
@@ -40,7 +53,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# everything but the slow full-resolution checks against Mitsuba
+# everything but the slow full-resolution checks against Mitsuba and the Blender renders
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 

@@ -11,7 +11,7 @@ from ..console import Console
 from ..outputs import write_json
 from ..scene import SceneFiles, require, solved_light
 
-VERSION = 2
+VERSION = 3  # 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
 
@@ -42,7 +42,8 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
             if light_path is not None:
                 env = images.read_latlong(light_path)  # lat-long exports keep its resolution
                 cube = cubemap.CubeMap(face_size or 64, hemisphere=False)
-                texels = cubemap.latlong_to_cube(env, cube)
+                # only the OpenGL faces need the cube map (its resampling: ~40 s at 64 x 64 faces)
+                texels = cubemap.latlong_to_cube(env, cube) if "opengl" in formats else None
             else:
                 texels, cube, _ = solved_light(scene)
                 env = cubemap.cube_to_latlong(texels, cube, height or max(64, 4 * cube.resolution))
@@ -62,6 +63,10 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                 outputs.append(xml)
             if "blender" in formats:
                 outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
+                script = out / "blender" / "setup_world.py"
+                with atomic_output(script) as tmp:
+                    tmp.write_text(ex.blender_world_script("light_equirect.exr"))
+                outputs.append(script)
             if "opengl" in formats:
                 for name, face in ex.to_gl_faces(texels, cube).items():
                     outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
