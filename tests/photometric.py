@@ -102,14 +102,14 @@ def light_intensities() -> np.ndarray:
 
 def read_mask() -> np.ndarray:
     """(H, W) bool, the ball's pixels."""
-    from pipelines import images
+    from pipelines.io import images
 
     return images.read_mask(DATA / "mask.png")
 
 
 def read_photo(index: int) -> np.ndarray:
     """(H, W, 3) float64 linear RGB of photo `index` (code / 65535; 1.0 = clipped)."""
-    from pipelines import images
+    from pipelines.io import images
 
     return images.read_image(DATA / "images" / filenames()[index], linear=True).pixels.astype(np.float64)
 
@@ -247,7 +247,7 @@ def build_ball_scene(dst: str | Path, index: int, *, focal_px: float = FOCAL_PX,
         (dst / "scene.toml").write_text("# the 16-bit PNG holds linear values (DiLiGenT: no gamma)\n"
                                         "[solve]\nlinear_input = true\n[compare]\nlinear_input = true\n")
     else:
-        from pipelines import images
+        from pipelines.io import images
 
         images.write_exr(dst / "image.exr", read_photo(index).astype(np.float32))
     shutil.copyfile(DATA / "mask.png", dst / "mask.png")
@@ -275,9 +275,10 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def scene_samples(scene: Path, edge_margin: int = 1):
     """wavelight's used pixels of a built scene (`pipelines.camera.pixel_samples`) and diagnostics."""
-    from pipelines import camera as cam
-    from pipelines import images, raycast
-    from pipelines import scene as sc
+    from pipelines.geometry import camera as cam
+    from pipelines.io import images
+    from pipelines.geometry import raycast
+    from pipelines.io import scene_files as sc
 
     camera = sc.read_camera(scene / "camera.json")
     pose = sc.read_pose(scene / "pose.json")

@@ -61,8 +61,8 @@ def test_circle_fit_matches_the_mask_and_the_true_normals(view):
 
 
 def test_pose_puts_the_sphere_onto_the_mask_circle(built, view):
-    from pipelines import camera as cam
-    from pipelines import scene as sc
+    from pipelines.geometry import camera as cam
+    from pipelines.io import scene_files as sc
 
     scene = built[0]
     camera, pose = sc.read_camera(scene / "camera.json"), sc.read_pose(scene / "pose.json")
@@ -99,8 +99,8 @@ def test_mesh_normals_match_normal_gt(built, view):
     # 0.16 deg median: the 0.15 px larger radius of the mask's circle (zero at the centre, most at the limb)
     assert np.median(err) < 0.2 and np.percentile(err, 95) < 0.5 and err.max() < 0.8
     # the tessellation's share: against the exact sphere through the same pixel rays, below 0.06 deg
-    from pipelines import camera as cam
-    from pipelines import scene as sc
+    from pipelines.geometry import camera as cam
+    from pipelines.io import scene_files as sc
 
     o, d = cam.pixel_rays(sc.read_camera(scene / "camera.json"), sc.read_pose(scene / "pose.json"), r, c)
     oc = o - view.centre
@@ -112,7 +112,7 @@ def test_mesh_normals_match_normal_gt(built, view):
 
 
 def test_mesh_file_is_a_closed_icosphere_with_exact_normals(built, view):
-    from pipelines import scene as sc
+    from pipelines.io import scene_files as sc
 
     mesh = sc.load_mesh(built[0] / "mesh.ply")
     assert len(mesh.faces) == 20 * 4**ph.SUBDIVISIONS == 20480 and len(mesh.vertices) == 10242
@@ -167,7 +167,7 @@ def test_scene_passes_wavelight_check(built):
 
 
 def test_exr_variant_holds_the_same_linear_values(tmp_path, view):
-    from pipelines import images
+    from pipelines.io import images
 
     scene, _, _ = ph.build_ball_scene(tmp_path / "exr", 3, image_format="exr", view=view)
     assert not (scene / "image.png").exists() and not (scene / "scene.toml").exists()
@@ -187,7 +187,7 @@ def test_release_archives_leave_out_the_test_data(tmp_path):
 
     config = tomllib.loads((REPO / "pyproject.toml").read_text())
     tool = config["tool"]["setuptools"]
-    assert tool["packages"] == ["wavelight_cli", "pipelines"]
+    assert tool["packages"]["find"]["include"] == ["pipelines", "pipelines.*", "wavelight_cli", "wavelight_cli.*"]
     assert not tool.get("package-data") and not tool.get("include-package-data")
     assert not (REPO / "MANIFEST.in").exists()
     src = tmp_path / "src"
@@ -203,7 +203,7 @@ def test_release_archives_leave_out_the_test_data(tmp_path):
         os.chdir(cwd)
     with tarfile.open(tmp_path / "dist" / name) as tar:
         members = tar.getnames()
-    assert any(m.endswith("pipelines/camera.py") for m in members)
+    assert any(m.endswith("pipelines/geometry/camera.py") for m in members)
     assert not [m for m in members if "/tests/" in m or m.endswith("/tests")]
 
 
@@ -212,9 +212,10 @@ def test_release_archives_leave_out_the_test_data(tmp_path):
                    "so ~15 % of the used pixels start their shadow rays under their own facet")
 def test_a_convex_ball_seen_through_a_long_lens_shadows_nothing(built):
     """The ball is convex: no shadow ray toward a texel in front of its facet may be blocked."""
-    from pipelines import cubemap, raycast
-    from pipelines import scene as sc
-    from pipelines import visibility as vis
+    from pipelines.light import cubemap
+    from pipelines.geometry import raycast
+    from pipelines.io import scene_files as sc
+    from pipelines.geometry import visibility as vis
 
     scene, _, _, samples, _ = built
     backend = raycast.make_backend(sc.load_mesh(scene / "mesh.ply"))

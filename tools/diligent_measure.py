@@ -58,7 +58,7 @@ def power_direction(radiance: np.ndarray, directions: np.ndarray, solid_angles: 
 
 def latlong_samples(latlong: np.ndarray):
     """(H*W, 3) radiance, directions and solid angles of a lat-long map (README's convention)."""
-    from pipelines.cubemap import latlong_solid_angles
+    from pipelines.light.cubemap import latlong_solid_angles
 
     H, W = latlong.shape[:2]
     theta = np.pi * (np.arange(H) + 0.5) / H
@@ -69,7 +69,7 @@ def latlong_samples(latlong: np.ndarray):
 
 
 def all_shadowed(scene: Path) -> tuple[int, int]:
-    from pipelines import visibility as vis
+    from pipelines.io import visibility_file as vis
 
     data = vis.read_visibility(scene / ".wavelight" / "visibility.h5")
     zero = 0
@@ -79,8 +79,8 @@ def all_shadowed(scene: Path) -> tuple[int, int]:
 
 
 def measure(scene: Path, led: np.ndarray) -> dict:
-    from pipelines import images
-    from pipelines import light as lt
+    from pipelines.io import images
+    from pipelines.io import light_file as lt
 
     report = json.loads((scene / "out" / "solve_report.json").read_text())
     refl = json.loads((scene / "out" / "reflectance.json").read_text())

@@ -95,8 +95,9 @@ _ORIGINAL = {}
 def install(ulps: float = OFFSET_ULPS):
     """Monkeypatch pipelines.camera.pixel_samples (refined hit points) and
     pipelines.visibility.visibility_rows (float64 origins, robust offsets)."""
-    from pipelines import camera as cam
-    from pipelines import visibility as vis
+    from pipelines.geometry import camera as cam
+    from pipelines.geometry import visibility as vis
+    from pipelines.io import visibility_file
 
     if _ORIGINAL:
         return
@@ -141,8 +142,9 @@ class _OffsetShim:
 
 
 def uninstall():
-    from pipelines import camera as cam
-    from pipelines import visibility as vis
+    from pipelines.geometry import camera as cam
+    from pipelines.geometry import visibility as vis
+    from pipelines.io import visibility_file
 
     if _ORIGINAL:
         cam.pixel_samples = _ORIGINAL.pop("pixel_samples")
@@ -160,7 +162,8 @@ def plane_distance(mesh, positions, faces):
 def shadow_counts(samples, backend, cube):
     """(pixels with V = 0 toward every texel, pixels with any castable texel shadowed, falsely
     occluded castable rays / castable rays). The ball is convex: no castable ray may be occluded."""
-    from pipelines import visibility as vis
+    from pipelines.geometry import visibility as vis
+    from pipelines.io import visibility_file
 
     data = vis.compute_visibility(backend, samples, cube)
     V = data.dense() > 0
@@ -173,9 +176,9 @@ def shadow_counts(samples, backend, cube):
 def study_case(ratio: float, scale: float, resolution: int, workdir: Path, scan=()) -> dict:
     """Ball of radius ~scale seen from ratio x radius, image as the photos (rho ~ 70.9 px)."""
     import photometric as ph
-    from pipelines import cubemap
-    from pipelines import raycast
-    from pipelines import scene as sc
+    from pipelines.light import cubemap
+    from pipelines.geometry import raycast
+    from pipelines.io import scene_files as sc
 
     mask = ph.read_mask()
     rho = ph.fit_circle(ph.outline_points(mask)).radius
@@ -187,8 +190,8 @@ def study_case(ratio: float, scale: float, resolution: int, workdir: Path, scan=
     mesh = sc.load_mesh(scene / "mesh.ply")
     backend = raycast.make_backend(mesh)
     cube = cubemap.CubeMap(resolution)
-    from pipelines import camera as cam
-    from pipelines import images
+    from pipelines.geometry import camera as cam
+    from pipelines.io import images
 
     m = images.read_mask(scene / "mask.png")
     row = {"distance_over_radius": ratio, "scale": scale, "radius": view.radius, "focal_px": focal,
@@ -216,7 +219,7 @@ def study_case(ratio: float, scale: float, resolution: int, workdir: Path, scan=
     row["vis_seconds_today"] = time.monotonic() - t0
     install()
     try:
-        from pipelines import camera as cam2
+        from pipelines.geometry import camera as cam2
 
         fixed, _ = cam2.pixel_samples(camera, pose, mesh, backend, m, 1)
         ferr = plane_distance(mesh, fixed.position, fixed.face)
@@ -261,9 +264,10 @@ def scene_report(scene: Path):
     """All-shadowed pixels of a scene's cached visibility, and where they are (radius from the ball's
     centre in px)."""
     import photometric as ph
-    from pipelines import visibility as vis
+    from pipelines.geometry import visibility as vis
+    from pipelines.io import visibility_file
 
-    data = vis.read_visibility(scene / ".wavelight" / "visibility.h5")
+    data = visibility_file.read_visibility(scene / ".wavelight" / "visibility.h5")
     s = data.samples
     V = data.dense() > 0
     cast = vis.castable(s.normal, s.geometric_normal, data.cube.directions)

@@ -57,8 +57,9 @@ HERE = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE / "tools"))
 
-from pipelines import cubemap as cm  # noqa: E402
-from pipelines import exports, images  # noqa: E402
+from pipelines.light import cubemap as cm  # noqa: E402
+from pipelines.io import exports
+from pipelines.io import images  # noqa: E402
 
 # -- fixed parameters ------------------------------------------------------------------------------
 WIDTH, HEIGHT, FOCAL = 320, 240, 400.0
@@ -789,7 +790,7 @@ def check_obj_loading(path: Path, spot: ObjectMesh, n_ground_faces: int) -> dict
     """How trimesh and wavelight's load_mesh read the two-material OBJ."""
     import trimesh
 
-    from pipelines import scene as sc
+    from pipelines.io import scene_files as sc
 
     loaded = trimesh.load(str(path), process=False)
     info = {"trimesh_version": trimesh.__version__, "trimesh_load_type": type(loaded).__name__}
@@ -901,7 +902,7 @@ def render_scene(spec: Scene, dest: Path, shared: Path, pass_spp: int) -> None:
     import mitsuba as mi
 
     from copy_test_data import write_ply
-    from pipelines import scene as sc
+    from pipelines.io import scene_files as sc
 
     t_start = time.time()
     final = dest / "scenes" / spec.name
@@ -1317,11 +1318,12 @@ def diffuse_check(name: str, dest: Path, resolution: int, pass_spp: int) -> dict
     scene folder) and compare with wavelight's forward model as tests/conftest.py does it."""
     import mitsuba as mi
 
-    from pipelines import camera as cam
-    from pipelines import raycast
-    from pipelines import render as rd
-    from pipelines import scene as sc
-    from pipelines import visibility as vis
+    from pipelines.geometry import camera as cam
+    from pipelines.geometry import raycast
+    from pipelines.model import materials as rd
+    from pipelines.model import render
+    from pipelines.io import scene_files as sc
+    from pipelines.geometry import visibility as vis
 
     spec = ALL_SCENES[name]
     if spec.textured:
@@ -1344,7 +1346,7 @@ def diffuse_check(name: str, dest: Path, resolution: int, pass_spp: int) -> dict
     samples, diag = cam.pixel_samples(camera, pose, mesh, backend, mask, edge_margin=1)
     cube = cm.CubeMap(resolution)
     V = vis.compute_visibility(backend, samples, cube)
-    ours = rd.render(V, cm.latlong_to_cube(light, cube), rd.Material(kd=(0.7, 0.7, 0.7)))
+    ours = render.render(V, cm.latlong_to_cube(light, cube), rd.Material(kd=(0.7, 0.7, 0.7)))
     ref = r.image[samples.pixel[:, 0], samples.pixel[:, 1]].astype(np.float64)
     n_obj = json.loads((folder / "truth" / "scene_params.json").read_text())["geometry"]["object_faces"]
     on_obj = samples.face < n_obj
