@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from cli_helpers import (RES, copy_sample, h5_arrays, manifest, sha256, wavelight_exe, VIS_STAGE, VIS_H5)
+from cli_helpers import (RES, copy_sample, h5_arrays, manifest, sha256, wavelight_exe, VIS_STAGE)
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="needs GNU make")

@@ -38,7 +38,7 @@ import tool_scenes as ts
 from cli_helpers import invoke, ok
 from pipelines.io import exports as ex
 from pipelines.io import images
-from pipelines.light.solution import cubemap
+from pipelines.light import cubemap
 from pipelines.model.materials import Material
 
 ROUGHNESS = 0.5  # Blender's Glossy roughness; GGX alpha = roughness^2 (Cycles: alpha = r^2)

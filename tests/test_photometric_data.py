@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import shutil
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -8,7 +8,6 @@ Figure.info["figure"]) and inspected, nothing is written.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

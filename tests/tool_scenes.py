@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.light.solution import cubemap
+from pipelines.light import cubemap
 from pipelines.model import render as model
 from pipelines.model.materials import Material
 

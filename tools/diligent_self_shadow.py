@@ -97,7 +97,6 @@ def install(ulps: float = OFFSET_ULPS):
     pipelines.visibility.visibility_rows (float64 origins, robust offsets)."""
     from pipelines.geometry import camera as cam
     from pipelines.geometry import visibility as vis
-    from pipelines.io import visibility_file
 
     if _ORIGINAL:
         return
@@ -144,7 +143,6 @@ class _OffsetShim:
 def uninstall():
     from pipelines.geometry import camera as cam
     from pipelines.geometry import visibility as vis
-    from pipelines.io import visibility_file
 
     if _ORIGINAL:
         cam.pixel_samples = _ORIGINAL.pop("pixel_samples")
@@ -163,7 +161,6 @@ def shadow_counts(samples, backend, cube):
     """(pixels with V = 0 toward every texel, pixels with any castable texel shadowed, falsely
     occluded castable rays / castable rays). The ball is convex: no castable ray may be occluded."""
     from pipelines.geometry import visibility as vis
-    from pipelines.io import visibility_file
 
     data = vis.compute_visibility(backend, samples, cube)
     V = data.dense() > 0
