@@ -91,10 +91,11 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice | np.ndarray, cu
     return frac
 
 
-def decode(block: np.ndarray, n_texels: int, encoding: str) -> np.ndarray:
-    """Stored rows -> (p, N) float32 visibility in [0, 1]."""
+def decode(block: np.ndarray, n_texels: int, encoding: str, raw: bool = False) -> np.ndarray:
+    """Stored rows -> (p, N) float32 visibility in [0, 1] (`raw` and bits: the 0/1 uint8, no copy to float)."""
     if encoding == "bits":
-        return np.unpackbits(block, axis=1, count=n_texels, bitorder="little").astype(np.float32)
+        bits = np.unpackbits(block, axis=1, count=n_texels, bitorder="little")
+        return bits if raw else bits.astype(np.float32)
     return block.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
@@ -119,11 +120,12 @@ class VisibilityData:
     def n_pixels(self) -> int:
         return len(self.samples)
 
-    def blocks(self, rows: int = 2048, pixels: np.ndarray | None = None) -> Iterator[tuple[slice, np.ndarray]]:
+    def blocks(self, rows: int = 2048, raw: bool = False) -> Iterator[tuple[slice, np.ndarray]]:
+        """(row slice, (p, N) V) blocks; `raw`: bit-packed rows as 0/1 uint8 (see `decode`)."""
         n = self.n_pixels
         for a in range(0, n, rows):
             sl = slice(a, min(n, a + rows))
-            yield sl, decode(np.asarray(self.stored[sl]), self.cube.n_texels, self.encoding)
+            yield sl, decode(np.asarray(self.stored[sl]), self.cube.n_texels, self.encoding, raw)
 
     def block(self, rows: slice) -> np.ndarray:
         """(p, N) float32 V of a slice of pixel rows."""
@@ -363,12 +365,15 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
             if check_entries > 0:
                 total = stats.inferred_last
                 take = min(total, int(np.ceil(check_entries * total / max(stats.castable, 1))) + 1)
-                if take:
-                    rows, texels, _ = _set_bits(inferred)
-                    pick = rng.choice(len(rows), size=min(take, len(rows)), replace=False)
-                    pr, pt = rows[pick], texels[pick]
-                    want = (inferred_lit[pr, pt >> 3] >> (pt & 7).astype(np.uint8)) & 1
-                    check.append((j[pr], pt, want.astype(bool)))
+                if take:  # random (pixel, texel) entries of this step, kept where they were inferred
+                    tries = int(take * (len(j) * N) / max(total, 1) * 1.5) + 16
+                    pr = rng.integers(0, len(j), tries)
+                    pt = rng.integers(0, N, tries)
+                    byte, bit = pt >> 3, (pt & 7).astype(np.uint8)
+                    hit = ((inferred[pr, byte] >> bit) & 1).astype(bool)
+                    pr, pt, byte, bit = pr[hit][:take], pt[hit][:take], byte[hit][:take], bit[hit][:take]
+                    want = ((inferred_lit[pr, byte] >> bit) & 1).astype(bool)
+                    check.append((j[pr], pt, want))
             settle(j, need, inferred_lit)
         if progress:
             progress(done + 1, len(steps))

@@ -178,6 +178,9 @@ class RowsPart:
 
     def project(self, P) -> SystemPart:
         """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
+        if not hasattr(P, "toarray"):
+            P = np.asarray(P, dtype=np.float32)  # a float64 P would make numpy copy the rows to float64
+
         def apply(rows):
             out = rows @ P
             return np.asarray(out.toarray() if hasattr(out, "toarray") else out, dtype=np.float64)
@@ -320,7 +323,7 @@ class TransportRows:
 
             v = self.vis
             D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
-            for sl, V in v.blocks(2048):
+            for sl, V in v.blocks(1024, raw=True):
                 D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube)
             self._diffuse = Pyramid(D, v.cube.tile_sizes)
         return self._diffuse
@@ -332,7 +335,7 @@ class TransportRows:
             from ..model.render import specular_transport
 
             S = np.empty((self.vis.n_pixels, self.vis.cube.n_texels), np.float32)
-            for sl, V in self.vis.blocks(2048):
+            for sl, V in self.vis.blocks(1024, raw=True):
                 S[sl] = specular_transport(V, self.vis.samples.normal[sl], self.vis.samples.view[sl], self.vis.cube,
                                            Material(ks=(1.0, 1.0, 1.0), shininess=shininess, model=model))
             self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}  # the latest only (memory)

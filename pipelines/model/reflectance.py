@@ -517,8 +517,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
 
     1. Light under Lambert (kd = kd_reference).
-    2. A probe: LM with that light fixed, from `start` (on `probe_rows` when given: it only has to
-       tell whether a specular term helps). If ks is not significant (< 3 sigma) or the probe
+    2. A probe: LM with that light fixed, from `start` (on `probe_rows` when given, or
+       `probe_rows(light)`: it only has to tell whether a specular term helps). If ks is not significant (< 3 sigma) or the probe
        lowers the held-out error of the same light by less than `min_gain`, stay Lambertian (no
        further light solve).
     3. Otherwise alternate from the probe's material and keep the specular model if its held-out
@@ -539,8 +539,9 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         return Reflectance(lambert, sol0, ctx0, rounds, 0, "auto", reason, candidates, time.perf_counter() - t0)
 
     try:
+        chosen = probe_rows(sol0.light) if callable(probe_rows) else probe_rows
         data = specular_data(vis, photo, sol0.light, start.model, use, held_out,
-                             **_rows(probe_rows if probe_rows is not None else rows))
+                             **_rows(chosen if chosen is not None else rows))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
     probe = fit_specular(data, start)

@@ -23,7 +23,8 @@ from .materials import Material
 
 def facing(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(P, N) cosines max(0, N . d) between shading normals and texel directions (float32)."""
-    return np.maximum(normals.astype(np.float32) @ directions.astype(np.float32).T, 0.0)
+    out = normals.astype(np.float32) @ directions.astype(np.float32).T
+    return np.maximum(out, 0.0, out=out)
 
 
 def lobe_cosines(normals: np.ndarray, views: np.ndarray, directions: np.ndarray, model: str) -> np.ndarray:
@@ -100,9 +101,16 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 
 
 def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.ndarray:
-    """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi."""
+    """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi.
+
+    V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`):
+    for 0/1 the product is formed in place, the same numbers without a float32 copy of V."""
     D = facing(normals, cube.vector_solid_angles)
-    D *= V * np.float32(1.0 / np.pi)
+    if V.dtype == np.uint8:
+        np.multiply(D, V, out=D)
+        D *= np.float32(1.0 / np.pi)
+    else:
+        D *= V * np.float32(1.0 / np.pi)
     return D
 
 
@@ -127,7 +135,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     out = np.zeros((vis.n_pixels, 3))
     Lf = L.astype(np.float32)
     s = vis.samples
-    for sl, V in vis.blocks(rows):
+    for sl, V in vis.blocks(rows, raw=True):
         D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
         out[sl] = kd * (D @ Lf)
         if S is not None:

@@ -126,18 +126,32 @@ def solve(ne: LightSystem, cube: CubeMap, options, progress=None) -> LightSoluti
 
 def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolution:
     """The solution's tree re-solved on another system (the same pixels with corrected transport,
-    or another material), warm-started from its light; the refinement record is kept."""
+    or another material), warm-started from its light. As in `solve_tree`, the tree is solved on the
+    fit pixels first, so that its held-out error is this system's (what `--reflectance auto` and the
+    rounds compare), then on all pixels; the refit level replaces the chosen one in the record."""
     t0 = time.perf_counter()
     _, unobservable = observability(ne)
-    both = ne.fit.combine(ne.held_out)
     tree = solution.tree
     P = haar.leaf_matrix(tree)
     counts = np.asarray(P.sum(axis=0)).ravel()
     guess = (np.asarray(P.T @ solution.light) / np.maximum(counts, 1)[:, None]) > 0
-    x, info = solve_nonnegative(both.project_tree(tree), guess)
+    fit_part = ne.fit.project_tree(tree)
+    x, info = solve_nonnegative(fit_part, guess)
     light = np.asarray(P @ x)
     light[unobservable] = 0.0
     coeffs = haar.leaf_values_to_coefficients(x, tree) if solution.basis == "wavelet" else x
-    return LightSolution(solution.basis, light, coeffs, solution.levels, solution.chosen, both.relative_rmse(light),
+    old = solution.levels[solution.chosen]
+    rec = Level(old.index, tree.n_coefficients, fit_part.relative_rmse(x), _rmse(ne.held_out, light),
+                0.0, info, light, coeffs, tree)
+    both = ne.fit.combine(ne.held_out)
+    if ne.held_out.n_pixels > 0:
+        x, info = solve_nonnegative(fit_part.combine(ne.held_out.project_tree(tree)), x > 0)
+        light = np.asarray(P @ x)
+        light[unobservable] = 0.0
+        coeffs = haar.leaf_values_to_coefficients(x, tree) if solution.basis == "wavelet" else x
+    rec.seconds = time.perf_counter() - t0
+    levels = list(solution.levels)
+    levels[solution.chosen] = rec
+    return LightSolution(solution.basis, light, coeffs, levels, solution.chosen, both.relative_rmse(light),
                          info, solution.seconds + time.perf_counter() - t0, tree,
-                         {**solution.details, "unobservable_texels": int(unobservable.sum())})
+                         {**solution.details, "unobservable_texels": int(unobservable.sum()), "refit": True})
