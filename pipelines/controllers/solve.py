@@ -29,6 +29,7 @@ DEFAULT_START_KS = 0.25  # start of a specular fit: ks = 0.25 x mean(kd), unless
 DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
 EXPLORE_ROWS = 8192  # refinement levels are chosen on this many of the fit sample's rows
 PROBE_ROWS = 2048  # --reflectance auto probes a specular term on this many fit rows (and half as many held out)
+LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of them where highlights are)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -155,20 +156,21 @@ class _Systems:
         held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
 
-    def probe_rows(self, light: np.ndarray, kd) -> tuple[np.ndarray, np.ndarray]:
-        """The rows `--reflectance auto` probes a specular term on, with their weights: the PROBE_ROWS
-        // 4 fit rows the Lambertian light explains least from above (where highlights would be, if
-        any), a spread head of the rest standing for all fit pixels, and a head of the held-out rows."""
+    def highlight_rows(self, light: np.ndarray, kd, n_fit: int, n_held: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows for a reflectance fit, with the weights that make them stand for all used pixels: the
+        n_fit // 4 fit rows the diffuse light explains least from above (where highlights are, if
+        any: a stratum of their own, each row standing for itself), a spread head of the other fit
+        rows standing for all of those, and a head of n_held held-out rows standing for all of them."""
         fs, hs = self.fit_sample, self.held_sample
         D = self.fit_rows.diffuse().rows
         pred = (D @ np.asarray(light, np.float32)).astype(np.float64) * np.asarray(kd)[None, :]
         values = self.values[fs.rows]
         excess = (values - pred).sum(axis=1) / np.maximum(values.sum(axis=1), 1e-12)
-        top = np.argsort(-excess, kind="stable")[:PROBE_ROWS // 4]
-        rest = np.setdiff1d(np.arange(len(fs.rows)), top)[: PROBE_ROWS - len(top)]  # a head: spread over the image
-        others = np.setdiff1d(np.arange(len(fs.rows)), top)
+        top = np.argsort(-excess, kind="stable")[:n_fit // 4]
+        others = np.setdiff1d(np.arange(len(fs.rows)), top)  # in sample order: every head is spread
+        rest = others[: max(0, n_fit - len(top))]
         w_rest = fs.weights[rest] * fs.weights[others].sum() / max(fs.weights[rest].sum(), 1e-300)
-        nh = min(PROBE_ROWS // 2, len(hs.rows))
+        nh = min(n_held, len(hs.rows))
         w_held = hs.weights[:nh] * hs.weights.sum() / max(hs.weights[:nh].sum(), 1e-300)
         return (np.concatenate([fs.rows[top], fs.rows[rest], hs.rows[:nh]]),
                 np.concatenate([fs.weights[top], w_rest, w_held]))
@@ -320,11 +322,11 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     lm_rows = probe_rows = None
     if not options.exact:  # the LM fits the same pixels the light is fitted to; the probe a few of them
-        fs, hs = systems.fit_sample, systems.held_sample
-        lm_rows = (np.concatenate([fs.rows, hs.rows]), np.concatenate([fs.weights, hs.weights]))
+        def lm_rows(light, kd):
+            return systems.highlight_rows(light, kd, LM_ROWS, LM_ROWS // 4)
 
         def probe_rows(light):
-            return systems.probe_rows(light, material.kd)
+            return systems.highlight_rows(light, material.kd, PROBE_ROWS, PROBE_ROWS // 2)
     try:
         if reflectance.mode == "given":
             result = rf.fixed(material, solve_light, "given", "given by the user (--material/--model/--kd/--ks/"

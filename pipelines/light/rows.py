@@ -335,7 +335,7 @@ class TransportRows:
             from ..model.render import specular_transport
 
             S = np.empty((self.vis.n_pixels, self.vis.cube.n_texels), np.float32)
-            for sl, V in self.vis.blocks(1024, raw=True):
+            for sl, V in self.vis.blocks(8192, raw=True):
                 S[sl] = specular_transport(V, self.vis.samples.normal[sl], self.vis.samples.view[sl], self.vis.cube,
                                            Material(ks=(1.0, 1.0, 1.0), shininess=shininess, model=model))
             self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}  # the latest only (memory)

@@ -136,6 +136,7 @@ class LightSolution:
     seconds: float
     tree: HaarTree | None = None
     details: dict = field(default_factory=dict)
+    unobservable: np.ndarray | None = None  # (N,) bool: texels no used pixel sees (`observability`)
 
     @property
     def n_coefficients(self) -> int:

@@ -33,7 +33,7 @@ from scipy.optimize import least_squares, nnls
 
 from ..geometry.visibility import VisibilityData, decode
 from .materials import SPECULAR_MODELS, Material
-from .render import lobe_norm, specular_factors, transport
+from .render import KERNEL_ROWS, lobe_norm, parallel_blocks, specular_factors, transport
 
 SHININESS_RANGE = (0.5, 20000.0)  # a fitted n outside this is no specular lobe we can resolve
 SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart scan over n
@@ -78,14 +78,22 @@ class SpecularData:
         L = self.light.astype(np.float32)
         EL = np.empty((len(self.A), 3))
         ELc = np.empty((len(self.A), 3)) if derivative else None
-        for a in range(0, len(self.A), _CHUNK):
-            sl = slice(a, a + _CHUNK)
-            E = np.exp(n32 * self.log_c[sl])
-            E *= self.A[sl]
-            EL[sl] = E @ L
-            if derivative:
-                E *= self.log_c[sl]
-                ELc[sl] = E @ L
+        b = KERNEL_ROWS
+
+        def run(starts):  # E = A exp(n log c) in blocks, on scratch that stays in cache
+            E = np.empty((b, self.A.shape[1]), np.float32)
+            for a in starts:
+                sl = slice(a, a + b)
+                e = E[: len(self.A[sl])]
+                np.multiply(self.log_c[sl], n32, out=e)
+                np.exp(e, out=e)
+                e *= self.A[sl]
+                EL[sl] = e @ L
+                if derivative:
+                    e *= self.log_c[sl]
+                    ELc[sl] = e @ L
+
+        parallel_blocks(run, list(range(0, len(self.A), b)))
         S = norm * EL
         if not derivative:
             return S
@@ -455,7 +463,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     """Light under `start` -> LM -> light -> ... until a round lowers the all-pixel RMSE by < tol.
 
     The best round (lowest RMSE) is kept; at most `max_rounds` LM fits. `rows`: (pixel indices,
-    weights) the LM fits (default: an evenly spread subset of the used pixels, `specular_data`).
+    weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
+    (default: an evenly spread subset of the used pixels, `specular_data`).
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
@@ -471,7 +480,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     material = start
     fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
     for k in range(1, max_rounds + 1):
-        data = specular_data(vis, photo, sol.light, start.model, use, held_out, **_rows(rows))
+        chosen = rows(sol.light, material.kd) if callable(rows) else rows
+        data = specular_data(vis, photo, sol.light, start.model, use, held_out, **_rows(chosen))
         fit = fit_specular(data, material, guard=k == 1)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
@@ -540,8 +550,10 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
 
     try:
         chosen = probe_rows(sol0.light) if callable(probe_rows) else probe_rows
+        if chosen is None:
+            chosen = rows(sol0.light, start.kd) if callable(rows) else rows
         data = specular_data(vis, photo, sol0.light, start.model, use, held_out,
-                             **_rows(chosen if chosen is not None else rows))
+                             **_rows(chosen))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
     probe = fit_specular(data, start)

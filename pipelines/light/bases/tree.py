@@ -111,7 +111,7 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
         coeffs = haar.leaf_values_to_coefficients(x, best.tree) if basis == "wavelet" else x
     all_rmse = both.relative_rmse(light)
     return LightSolution(basis, light, coeffs, records, chosen, all_rmse, info, time.perf_counter() - t_all,
-                         best.tree, {"unobservable_texels": int(unobservable.sum())})
+                         best.tree, {"unobservable_texels": int(unobservable.sum())}, unobservable)
 
 
 def _leaf_guess(level: Level, P) -> np.ndarray:
@@ -130,7 +130,8 @@ def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolut
     fit pixels first, so that its held-out error is this system's (what `--reflectance auto` and the
     rounds compare), then on all pixels; the refit level replaces the chosen one in the record."""
     t0 = time.perf_counter()
-    _, unobservable = observability(ne)
+    # which texels no pixel sees is geometry (the same pixels): the refinement's, when it kept it
+    unobservable = solution.unobservable if solution.unobservable is not None else observability(ne)[1]
     tree = solution.tree
     P = haar.leaf_matrix(tree)
     counts = np.asarray(P.sum(axis=0)).ravel()
@@ -154,4 +155,5 @@ def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolut
     levels[solution.chosen] = rec
     return LightSolution(solution.basis, light, coeffs, levels, solution.chosen, both.relative_rmse(light),
                          info, solution.seconds + time.perf_counter() - t0, tree,
-                         {**solution.details, "unobservable_texels": int(unobservable.sum()), "refit": True})
+                         {**solution.details, "unobservable_texels": int(unobservable.sum()), "refit": True},
+                         unobservable)
