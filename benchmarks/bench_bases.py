@@ -30,43 +30,9 @@ from pipelines.light import cubemap
 from pipelines.light import haar
 from pipelines.io import images  # noqa: E402
 from pipelines.io import light_file as lt  # noqa: E402
-from pipelines.model.materials import Material
-from pipelines.model.render import transport  # noqa: E402
 from pipelines.io.scene_files import read_pose  # noqa: E402
 
-# Two probe spheres: a matte one (what a diffuse object inserted into the photo would show) and a
-# glossy one (what a specular object would reflect: the light's sharper detail).
-PROBES = {"diffuse": Material(kd=(0.8, 0.8, 0.8)),
-          "glossy": Material(kd=(0.2, 0.2, 0.2), ks=(0.8, 0.8, 0.8), shininess=100.0, model="blinn-phong")}
-PROBE_PIXELS = 48  # the probe's image is PROBE_PIXELS across
-
-
-def probe_geometry(view: np.ndarray, pixels: int = PROBE_PIXELS) -> tuple[np.ndarray, np.ndarray]:
-    """Normals of a unit sphere seen orthographically from unit direction `view` (toward the
-    camera), one per pixel of its disc, and the view direction repeated: (P, 3) each."""
-    up = np.array([0.0, 0.0, 1.0]) if abs(view[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    right = np.cross(up, view)
-    right /= np.linalg.norm(right)
-    up = np.cross(view, right)
-    u = (np.arange(pixels) + 0.5) / pixels * 2 - 1
-    x, y = np.meshgrid(u, -u)
-    inside = x**2 + y**2 < 1
-    z = np.sqrt(1 - x[inside] ** 2 - y[inside] ** 2)
-    normals = x[inside, None] * right + y[inside, None] * up + z[:, None] * view
-    return normals, np.broadcast_to(view, normals.shape).copy()
-
-
-def probe_image(texels: np.ndarray, cube: cubemap.CubeMap, normals: np.ndarray, views: np.ndarray,
-                material: Material) -> np.ndarray:
-    """The probe's radiance (P, 3) under a hemisphere light: the same transport as every solver,
-    with nothing in the way (a sphere does not shadow itself; the ground hides the lower half)."""
-    V = np.ones((len(normals), cube.n_texels), np.float32)
-    D, S = transport(V, normals, views, cube, material)
-    L = np.asarray(texels, np.float64).reshape(cube.n_texels, -1)
-    out = (D.astype(np.float64) @ L) * np.asarray(material.kd)
-    if S is not None:
-        out += (S.astype(np.float64) @ L) * np.asarray(material.ks)
-    return out
+from pipelines.metrics import PROBES, probe_geometry, probe_image  # noqa: E402  (shared with the tests)
 
 
 def probe_error(texels: np.ndarray, cube: cubemap.CubeMap, truth: dict, geometry) -> dict:

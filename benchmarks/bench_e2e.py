@@ -37,12 +37,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_bases import PROBES, probe_geometry, probe_image  # noqa: E402
+from pipelines.metrics import probe_errors as probe_errors_of  # noqa: E402
 from bench_visibility import scaled_camera  # noqa: E402
 from pipelines.io import images, light_file  # noqa: E402
 from pipelines.io.scene_files import read_camera, read_pose  # noqa: E402
 from pipelines.light import cubemap  # noqa: E402
-from pipelines.metrics import scale_invariant_rmse  # noqa: E402
 
 
 def prepare(src: Path, dst: Path, scale: int) -> Path:
@@ -84,11 +83,8 @@ def probe_errors(coefficients: Path, scene: Path) -> dict:
     light, cube, _ = light_file.read_solution_light(coefficients)
     env = images.read_latlong(scene / "truth" / "env_latlong.exr")
     view = read_pose(scene / "pose.json" if (scene / "pose.json").exists() else scene / "truth" / "pose.json").camera_centre
-    geometry = probe_geometry(view / np.linalg.norm(view))
     fine = cubemap.CubeMap(64)
-    truth = cubemap.latlong_to_cube(env, fine)
-    return {name: scale_invariant_rmse(probe_image(light, cube, *geometry, m), probe_image(truth, fine, *geometry, m))
-            for name, m in PROBES.items()}
+    return probe_errors_of(light, cube, cubemap.latlong_to_cube(env, fine), fine, view)
 
 
 def main():

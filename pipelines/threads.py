@@ -27,3 +27,20 @@ def blas_threads(n: int):
     """Run the block with at most `n` BLAS threads (restored afterwards)."""
     with _controller().limit(limits=max(1, int(n)), user_api="blas"):
         yield
+
+
+def parallel_blocks(run, starts: list) -> None:
+    """Blocked array work on the machine's cores (at most 2): `run(starts[i::k])` on thread i of k,
+    with one BLAS thread each (the products in a block are small). numpy's ufuncs and BLAS release
+    the GIL, so the threads run in parallel; each `run` keeps its own scratch arrays."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    workers = min(2, cores, len(starts))
+    if workers == 1:
+        run(starts)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with blas_threads(1), ThreadPoolExecutor(workers) as pool:
+        list(pool.map(run, [starts[i::workers] for i in range(workers)]))

@@ -243,3 +243,20 @@ def test_auto_switches_on_a_specular_scene(glossy):
     assert result.candidates["blinn-phong"]["held_out_rmse"] < 0.5 * result.candidates["lambert"]["held_out_rmse"]
     assert result.material.ks[0] == pytest.approx(0.4, rel=0.05)
     assert result.rounds[0].material.model == "lambert"
+
+
+def test_refit_measures_the_new_materials_held_out_error(glossy):
+    """A reflectance round re-solves the refinement's tree under its material (`bases.refit`): the
+    held-out error it reports is the new system's, measured on a light fitted without the
+    held-out pixels (the rounds and auto compare these), not the refinement's own."""
+    lam = Material(kd=(0.5, 0.5, 0.5))
+    sol, _ = glossy.solve_light(lam)
+    ne = build_normal_equations(glossy.vis, glossy.photo, TRUE, held_out=glossy.held)
+    again = lt.refit(ne, glossy.cube, sol)
+    rec = again.levels[again.chosen]
+    assert rec.n_coefficients == sol.n_coefficients  # the same tree
+    assert again.held_out_rmse == pytest.approx(ne.held_out.relative_rmse(rec.light), rel=1e-9)
+    assert again.held_out_rmse < 0.5 * sol.held_out_rmse  # the glossy photo: the true material explains it
+    # the final light is fitted to all pixels: no worse over them than the fit-only light
+    both = ne.fit.combine(ne.held_out)
+    assert both.relative_rmse(again.light) <= both.relative_rmse(rec.light) + 1e-12

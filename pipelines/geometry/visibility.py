@@ -27,6 +27,29 @@ def castable(normals: np.ndarray, geometric_normals: np.ndarray, directions: np.
     return ((normals.astype(np.float32) @ d) > 0) & ((geometric_normals.astype(np.float32) @ d) > 0)
 
 
+def castable_bits(normals: np.ndarray, geometric_normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """`castable`, bit-packed (little bit order): (P, ceil(N/8)) uint8, in blocks on both cores."""
+    from ..threads import parallel_blocks
+
+    P, N = len(normals), len(directions)
+    out = np.empty((P, (N + 7) // 8), np.uint8)
+    d = directions.astype(np.float32).T
+    nrm, geo = normals.astype(np.float32), geometric_normals.astype(np.float32)
+    b = 256
+
+    def run(starts):
+        x, y = np.empty((b, N), np.float32), np.empty((b, N), np.float32)
+        for a in starts:
+            sl = slice(a, min(P, a + b))
+            k = sl.stop - sl.start
+            np.matmul(nrm[sl], d, out=x[:k])
+            np.matmul(geo[sl], d, out=y[:k])
+            out[sl] = np.packbits((x[:k] > 0) & (y[:k] > 0), axis=1, bitorder="little")
+
+    parallel_blocks(run, list(range(0, P, b)))
+    return out
+
+
 PIXELS_PER_CALL = 16  # pixels traced per Embree call: amortises the call, keeps batches small
 
 
@@ -284,10 +307,7 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
     origins = backend.to_local(samples.position) + np.float32(backend.offset) * geo
     dirs = cube.directions.astype(np.float32)
     # castable entries, bit-packed (the stored rows hold V = 0 where a texel is not castable)
-    can = np.empty((P, nb), np.uint8)
-    for a in range(0, P, 4096):
-        sl = slice(a, min(P, a + 4096))
-        can[sl] = np.packbits(castable(samples.normal[sl], geo[sl], dirs), axis=1, bitorder="little")
+    can = castable_bits(samples.normal, geo, dirs)
     lit = np.zeros((P, nb), np.uint8)  # fully visible
     dark = np.zeros((P, nb), np.uint8)  # castable and fully occluded
     frac = None if supersample == 1 else np.zeros((P, N), np.uint8)

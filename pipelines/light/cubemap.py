@@ -203,7 +203,6 @@ class CubeMap:
         # major axis -> face index (FACE_NAMES order) and the face's (s, t) numerators
         is_x = (ax >= ay) & (ax >= az)
         is_y = ~is_x & (ay >= az)
-        is_z = ~is_x & ~is_y
         face = np.where(is_x, np.where(x >= 0, _FACE["+x"], _FACE["-x"]),
                         np.where(is_y, np.where(y >= 0, _FACE["+y"], _FACE["-y"]),
                                  np.where(z >= 0, _FACE["+z"], _FACE["-z"])))

@@ -25,6 +25,7 @@ from functools import cached_property
 import numpy as np
 from scipy.linalg import blas
 
+from ..threads import parallel_blocks
 from .haar import HaarTree
 from .system import SystemPart
 
@@ -224,18 +225,27 @@ class RowsPart:
         scale = self.channel_scale
         ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
         channels = [ref] if scale is not None else range(C)
-        out = np.zeros((C, N))
         w = self.w.astype(np.float32)
-        for a in range(0, self.n_rows, 4096):
-            sl = slice(a, a + 4096)
-            D = self.D.rows[sl]
-            S = None if self.S is None else self.S.rows[sl]
-            for c in channels:
-                T = D * np.float32(self.kd[c])
-                if S is not None and self.ks[c] != 0:
-                    T += S * np.float32(self.ks[c])
-                T *= T
-                out[c] += w[sl] @ T
+        b = 256
+        starts = list(range(0, self.n_rows, b))
+        partial = {}
+
+        def run(mine):  # per thread: its blocks' sums, on its own scratch
+            acc = np.zeros((C, N))
+            T = np.empty((b, N), np.float32)
+            for a in mine:
+                sl = slice(a, min(self.n_rows, a + b))
+                t = T[: sl.stop - sl.start]
+                for c in channels:
+                    np.multiply(self.D.rows[sl], np.float32(self.kd[c]), out=t)
+                    if self.S is not None and self.ks[c] != 0:
+                        t += self.S.rows[sl] * np.float32(self.ks[c])
+                    t *= t
+                    acc[c] += w[sl] @ t
+            partial[mine[0] if mine else -1] = acc
+
+        parallel_blocks(run, starts)
+        out = sum(partial.values()) if partial else np.zeros((C, N))
         if scale is not None:
             out = scale[:, None] ** 2 * out[ref][None, :]
         return out
@@ -323,7 +333,7 @@ class TransportRows:
 
             v = self.vis
             D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
-            for sl, V in v.blocks(1024, raw=True):
+            for sl, V in v.blocks(8192, raw=True):
                 D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube)
             self._diffuse = Pyramid(D, v.cube.tile_sizes)
         return self._diffuse

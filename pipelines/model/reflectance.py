@@ -33,7 +33,8 @@ from scipy.optimize import least_squares, nnls
 
 from ..geometry.visibility import VisibilityData, decode
 from .materials import SPECULAR_MODELS, Material
-from .render import KERNEL_ROWS, lobe_norm, parallel_blocks, specular_factors, transport
+from ..threads import parallel_blocks
+from .render import KERNEL_ROWS, lobe_norm, specular_factors, transport
 
 SHININESS_RANGE = (0.5, 20000.0)  # a fitted n outside this is no specular lobe we can resolve
 SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart scan over n

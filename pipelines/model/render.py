@@ -19,7 +19,10 @@ import numpy as np
 
 from ..geometry.visibility import VisibilityData
 from ..light.cubemap import CubeMap
+from ..threads import parallel_blocks
 from .materials import Material
+
+KERNEL_ROWS = 256  # rows per block of the transport kernels: a block's scratch stays in cache
 
 def facing(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(P, N) cosines max(0, N . d) between shading normals and texel directions (float32)."""
@@ -103,18 +106,25 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.ndarray:
     """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi.
 
-    V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`):
-    for 0/1 the product is formed in place, the same numbers without a float32 copy of V."""
-    D = facing(normals, cube.vector_solid_angles)
-    if V.dtype == np.uint8:
-        np.multiply(D, V, out=D)
-        D *= np.float32(1.0 / np.pi)
-    else:
-        D *= V * np.float32(1.0 / np.pi)
-    return D
+    V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`).
+    Formed in place, in blocks of rows on both cores."""
+    P, N = len(normals), cube.n_texels
+    m = cube.vector_solid_angles.astype(np.float32)
+    nrm = np.asarray(normals, np.float32)
+    out = np.empty((P, N), np.float32)
+    inv_pi = np.float32(1.0 / np.pi)
 
+    def run(starts):
+        for a in starts:
+            sl = slice(a, min(P, a + KERNEL_ROWS))
+            o = out[sl]
+            np.matmul(nrm[sl], m.T, out=o)
+            np.maximum(o, 0.0, out=o)
+            o *= V[sl]
+            o *= inv_pi
 
-KERNEL_ROWS = 256  # rows per block of the transport kernels: a block's scratch stays in cache
+    parallel_blocks(run, list(range(0, P, KERNEL_ROWS)))
+    return out
 
 
 def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
@@ -168,25 +178,8 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
             o *= w
             o *= V[sl]
             o *= u
-    starts = list(range(0, P, b))
-    parallel_blocks(run, starts)
+    parallel_blocks(run, list(range(0, P, b)))
     return out
-
-
-def parallel_blocks(run, starts: list) -> None:
-    """run(starts[i::2]) on two threads when there is enough work (numpy's ufuncs release the GIL)."""
-    import os
-
-    workers = min(2, os.cpu_count() or 1, len(starts))
-    if workers == 1:
-        run(starts)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    from ..threads import blas_threads
-
-    with blas_threads(1), ThreadPoolExecutor(workers) as pool:  # small products: one BLAS thread each
-        list(pool.map(run, [starts[i::workers] for i in range(workers)]))
 
 
 def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048) -> np.ndarray:
