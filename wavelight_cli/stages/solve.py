@@ -23,7 +23,7 @@ from ..outputs import heat_map, jsonable, upscale, write_json, write_light, writ
 from ..scene import SceneFiles, load_photo
 from .visibility import visibility_stage
 
-VERSION = 3
+VERSION = 4  # 4: the sampled route; reflectance rounds compare their own held-out errors
 COMPARE_VERSION = 3
 
 
