@@ -37,6 +37,8 @@ def parallel_blocks(run, starts: list) -> None:
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     workers = min(2, cores, len(starts))
+    if workers == 0:
+        return
     if workers == 1:
         run(starts)
         return

@@ -191,6 +191,29 @@ class _Systems:
             self.held_rows = TransportRows(self.vis, self.held_sample.rows)
 
 
+def recast_bright(systems: _Systems, backend, sol, system, material: Material, light_options: LightOptions,
+                  progress: Progress, resolve: bool = True):
+    """Cast the directions that carry much of `sol`'s light exactly for every pixel (the visibility
+    was inferred there from neighbours) and solve the light again on the corrected system, levels
+    chosen afresh, so the report's levels and errors are all of the system the light is solved on.
+    Returns (solution, system, recast texels), the solution None unless `resolve`; all unchanged
+    when no direction needs it."""
+    from ..light import bases
+
+    texels = bright_texels(sol.light, systems.vis.cube)
+    if not len(texels):
+        return sol, system, texels
+    progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
+    systems.recast(backend, texels)
+    system = systems.system(material)
+    if not resolve:
+        return None, system, texels
+    o = light_options
+    sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
+                      o.sh_order, o.sh_nonnegative)
+    return sol, system, texels
+
+
 def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
     """The texels that carry so much of the light that a wrong visibility bit toward them shows: by
     decreasing power share s_i (radiance x solid angle), until the rest's sum of s_i^2 is below
@@ -363,17 +386,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         result.solution, result.context = sol, system
     recast = np.zeros(0, np.int64)
     if adaptive and backend is not None:
-        recast = bright_texels(sol.light, vis.cube)
-        if len(recast):
-            progress.note(f"casting the {len(recast)} brightest light directions exactly for every pixel")
-            systems.recast(backend, recast)
-            system = systems.system(material)
-            again = bases.refit(system, vis.cube, sol)
-            if again is None:
-                o = light_options
-                again = bases.solve(system, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
-                                    o.sh_order, o.sh_nonnegative)
-            sol = again
+        sol, system, recast = recast_bright(systems, backend, sol, system, material, light_options, progress)
     observability, unobservable = ls.observability(system)
     relit = render(systems.vis, sol.light, material)
     versus = versus_photo(relit, values, usable)

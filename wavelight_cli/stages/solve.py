@@ -23,8 +23,8 @@ from ..outputs import heat_map, jsonable, upscale, write_json, write_light, writ
 from ..scene import SceneFiles, load_photo
 from .visibility import visibility_stage
 
-VERSION = 4  # 4: the sampled route; reflectance rounds compare their own held-out errors
-COMPARE_VERSION = 3
+VERSION = 5  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: levels chosen again after the exact recast
+COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
 class ConsoleProgress:
@@ -156,6 +156,8 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     """Every basis on one scene at one resolution -> out/compare.json, compare.md, compare.png, ..."""
     from pipelines.controllers.compare import COLUMNS, compare_scene
+    from pipelines.geometry import raycast
+    from pipelines.io.scene_files import load_mesh
     from pipelines.io import visibility_file
 
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
@@ -169,7 +171,9 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
 
         def work(d) -> Ran:
             data = visibility_file.read_visibility(vis.path)
-            result = compare_scene(data, photo, material, opts, photo_path, ConsoleProgress(console, "compare"))
+            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
+            result = compare_scene(data, photo, material, opts, photo_path, ConsoleProgress(console, "compare"),
+                                   backend, adaptive=data.method == "adaptive")
             table = {"format": "wavelight-compare-1", "scene": str(scene.root), "resolution": vis_opts.resolution,
                      "hemisphere": vis_opts.hemisphere, "pixels": result.pixels, "sample": result.sample,
                      "normal_equations_seconds": result.system_seconds, "observability": result.observability,
