@@ -35,19 +35,30 @@ _OS_FIXES = {
 }
 
 
+_NO_ERRNO_FIX = "check that the disk has free space and the folder is writable, then rerun (earlier results and " \
+    "finished stages are kept)"
+
+
 def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
     """One error line for a failure of the file system (full disk, permissions, ...); None when
     `exc` is not one (that is a bug, and keeps its traceback). HDF5 reports a full disk as a
-    RuntimeError naming errno 28, not as an OSError."""
+    RuntimeError naming errno 28, not as an OSError. An OSError without an errno (some libraries
+    raise one with only a message, or none) is still a file-system failure: it gets a line too."""
     code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
     if code is None and "No space left on device" in str(exc):
         code = errno.ENOSPC
-    if code is None or code not in _OS_FIXES and not isinstance(exc, OSError):
+    if code is None and not isinstance(exc, OSError):
         return None
     where = getattr(exc, "filename", None) or scene or "."
-    problem = (getattr(exc, "strerror", None) or os.strerror(code)) if code else str(exc)
-    fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
-    return InputError(problem.lower() if code else problem, where, fix).line()
+    if code is not None:
+        problem = getattr(exc, "strerror", None) or os.strerror(code)
+        problem = problem[:1].lower() + problem[1:]  # "no space left on device"; a library's detail as it is
+        fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
+    else:
+        problem = exc.strerror or (str(exc.args[0]) if exc.args else "") or "the operating system reported an error"
+        fix = _NO_ERRNO_FIX
+    lines = problem.strip().splitlines() or ["the operating system reported an error"]
+    return InputError(lines[0], where, fix).line()
 
 
 class WavelightGroup(click.Group):

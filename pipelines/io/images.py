@@ -207,15 +207,15 @@ def _write(path: str | Path, array: np.ndarray, fmt) -> Path:
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise _write_error(path, oiio.geterror())
+            raise write_error(path, oiio.geterror())
         ok = out.write_image(arr)
         out.close()
         if not ok:
-            raise _write_error(path, out.geterror())
+            raise write_error(path, out.geterror())
     return path
 
 
-def _write_error(path: Path, detail: str) -> OSError:
+def write_error(path: Path, detail: str) -> OSError:
     """OpenImageIO reports a failed write as text: an OSError that says why (with its errno when the
     cause is known: a full disk, a missing permission), naming the final file."""
     import errno
