@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, run_proc, snapshot, vis_file, wavelight_exe, VIS_H5, VIS_STAGE)
+from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, run_proc, snapshot, vis_file, vis_stage, wavelight_exe, VIS_H5, VIS_STAGE)
 from pipelines.io import images
 from pipelines.io.files import atomic_output, is_temporary, output_set
 
@@ -165,7 +165,7 @@ def test_disk_full_writing_a_visibility_chunk(tmp_path, monkeypatch, kind):
         assert np.load(p, allow_pickle=False).shape[0] == saves[0]
     assert not vis_file(scene, slot="-exact").exists()
     assert not (scene / ".wavelight" / "manifest.json").exists() or \
-        vis_file(scene, slot="-exact") not in manifest(scene)["stages"]
+        vis_stage(slot="-exact") not in manifest(scene)["stages"]
     assert temporaries(scene) == []
     monkeypatch.undo()
     err = ok(invoke(scene, *args))
