@@ -98,6 +98,22 @@ def _exr(name, shape, nan=False):
     return mutate
 
 
+def _nan_block(mask: str):
+    """The photo with NaN in its top-left 10 x 10 pixels (background) and a mask.png: "out" leaves
+    the block out, "in" keeps every pixel, "wrong-size" is smaller than the photo."""
+    def mutate(scene):
+        from pipelines.io.images import read_image, write_exr, write_png
+
+        img = read_image(scene / "image.exr").pixels.copy()
+        img[:10, :10] = np.nan
+        write_exr(scene / "image.exr", img)
+        keep = np.ones(img.shape[:2] if mask != "wrong-size" else (100, 192))
+        if mask == "out":
+            keep[:10, :10] = 0.0
+        write_png(scene / "mask.png", keep, already_display=True)
+    return mutate
+
+
 def _png(name, shape, value):
     def mutate(scene):
         from pipelines.io.images import write_png
@@ -209,6 +225,9 @@ BAD_INPUT = [
     ("image-truncated", _truncate_half("image.exr"), CHECK, _file("image.exr")),
     ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, _file("image.exr")),
     ("image-nan", _exr("image.exr", (144, 192, 3), nan=True), CHECK, _file("image.exr")),
+    ("image-nan-inside-mask", _nan_block("in"), CHECK, _file("image.exr")),
+    ("image-nan-inside-mask-render", _nan_block("in"), RENDER, _file("image.exr")),
+    ("image-nan-mask-wrong-size", _nan_block("wrong-size"), CHECK, _file("mask.png")),
     ("mask-empty", _png("mask.png", (144, 192, 3), 0), VIS, _file("mask.png")),
     ("mask-wrong-size", _png("mask.png", (100, 192, 3), 1), VIS, _file("mask.png")),
     ("mask-empty-check", _png("mask.png", (144, 192, 3), 0), CHECK, _file("mask.png")),
@@ -317,6 +336,24 @@ def test_bad_input_real_process_prints_exactly_one_line(scene, mutate, command, 
     assert len(lines) == 1 and lines[0].startswith("Error:"), proc.stderr
     assert str(scene / culprit) in lines[0]
     assert snapshot(scene) == before
+
+
+def test_nan_pixels_the_mask_leaves_out_are_not_refused(scene):
+    """NaN pixels of the photo that mask.png leaves out are never used: `check` and `render` (which
+    compares with the photo) accept the photo; they read as black. NaN inside the mask is refused
+    (BAD_INPUT: image-nan-inside-mask)."""
+    from pipelines.io.images import read_image
+
+    _nan_block("out")(scene)
+    out = invoke(scene, "check")
+    ok(out)
+    assert "image.exr: 192x144, float" in out.stdout
+    ok(invoke(scene, *render_args(scene)))
+    assert np.isfinite(read_image(scene / "out" / "render.exr").pixels).all()
+    photo = read_image(scene / "image.exr", mask=scene / "mask.png").pixels
+    assert np.all(photo[:10, :10] == 0.0) and np.isfinite(photo).all()
+    with pytest.raises(InputError, match="100 pixels are NaN or infinite"):
+        read_image(scene / "image.exr")  # without the mask every pixel counts
 
 
 def test_render_with_bad_photo_leaves_results_untouched(scene):

@@ -74,6 +74,43 @@ def test_nonfinite_exr_pixels_raise_naming_the_file(tmp_path, bad):
     assert "2 pixels" in str(info.value)
 
 
+def _mask_png(path, keep):
+    write_raw(path, np.repeat(keep[..., None], 3, axis=2).astype(np.uint8) * 255, "uint8")
+    return path
+
+
+def test_nonfinite_pixels_the_mask_leaves_out_read_as_zero(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0], img[3, 5] = np.nan, np.inf
+    keep = np.ones((4, 6), bool)
+    keep[1, 2] = keep[3, 5] = False
+    loaded = read_image(write_raw(tmp_path / "photo.exr", img, "float"), mask=_mask_png(tmp_path / "mask.png", keep))
+    assert np.all(loaded.pixels[~keep] == 0.0)
+    np.testing.assert_array_equal(loaded.pixels[keep], img[keep])
+
+
+def test_nonfinite_pixels_inside_the_mask_raise_naming_the_photo_and_the_mask(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0], img[3, 5] = np.nan, np.inf
+    keep = np.ones((4, 6), bool)
+    keep[1, 2] = False  # the NaN is left out, the Inf is not
+    path = write_raw(tmp_path / "photo.exr", img, "float")
+    with pytest.raises(InputError) as info:
+        read_image(path, mask=_mask_png(tmp_path / "mask.png", keep))
+    assert info.value.path == path
+    assert "1 pixels inside mask.png are NaN or infinite (the first at row 3, column 5)" in str(info.value)
+    assert "paint them black in mask.png" in str(info.value)
+
+
+def test_nonfinite_pixels_and_a_mask_of_another_size_raise_naming_the_mask(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[0, 0] = np.nan
+    mask = _mask_png(tmp_path / "mask.png", np.ones((4, 5), bool))
+    with pytest.raises(InputError) as info:
+        read_image(write_raw(tmp_path / "photo.exr", img, "float"), mask=mask)
+    assert info.value.path == mask and "mask is 5x4, the photo photo.exr is 6x4" in str(info.value)
+
+
 def test_small_negative_exr_values_are_clipped_to_zero(tmp_path):
     img = np.full((2, 3, 3), 0.25, np.float32)
     img[0, 0] = -1e-3

@@ -96,11 +96,12 @@ def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> Vie
 
 
 def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
-    """(path, `LoadedImage`) of the scene's photo, checked against the camera's size."""
+    """(path, `LoadedImage`) of the scene's photo, checked against the camera's size. NaN/Inf
+    pixels that mask.png leaves out are not refused (they read as 0)."""
     from pipelines.io import images
 
     path = scene.require_image()
-    img = images.read_image(path, linear=linear)
+    img = images.read_image(path, linear=linear, mask=scene.mask)
     if (img.width, img.height) != (camera.width, camera.height):
         raise InputError(f"image is {img.width}x{img.height} but camera.json says {camera.width}x{camera.height}",
                          path, "use the photo the camera was calibrated for, or fix camera.json")

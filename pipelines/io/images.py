@@ -96,18 +96,21 @@ def _pixels(buf, path: Path, fmt) -> np.ndarray:
     return px if fmt != oiio.FLOAT else px.astype(np.float32, copy=False)
 
 
-def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
+def read_image(path: str | Path, linear: bool | None = None, mask: str | Path | None = None) -> LoadedImage:
     """Read a photo as linear RGB radiance.
 
     Parameters
     ----------
     path : image file (EXR/HDR/PFM/TIFF/PNG/JPEG, anything OpenImageIO reads).
     linear : treat integer formats as linear (default: sRGB-decode them). Ignored for float files.
+    mask : the photo's mask.png (white = used), read only if the photo has non-finite pixels:
+        NaN/Inf pixels the mask leaves out are not refused (they become 0).
 
     Raises
     ------
     InputError
-        Missing, unreadable or truncated file; non-finite or negative pixels; wrong channel count.
+        Missing, unreadable or truncated file; non-finite pixels that are used (no mask, or inside
+        it); a mask of another size; wrong channel count.
     """
     import OpenImageIO as oiio
 
@@ -131,10 +134,10 @@ def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
     if px.shape[2] == 1:
         px = np.repeat(px, 3, axis=2)
     if is_float:
-        if not np.all(np.isfinite(px)):
-            n_bad = int(np.count_nonzero(~np.isfinite(px).all(axis=2)))
-            raise InputError(f"{n_bad} pixels are NaN or infinite", path,
-                             "fix the render/merge that produced it, or mask those pixels out")
+        bad = ~np.isfinite(px).all(axis=2)
+        if bad.any():
+            _check_nonfinite(path, bad, mask)
+            px[bad] = 0.0  # left out by the mask: never used
         if np.any(px < 0):
             px = np.clip(px, 0.0, None)  # small negatives come from denoisers/subtraction
         saturated = np.zeros(px.shape[:2], dtype=bool)
@@ -149,6 +152,24 @@ def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
         depth = str(8 * px.dtype.itemsize)
     return LoadedImage(pixels=np.ascontiguousarray(pixels), saturated=saturated,
                        linear_source=linear_source, bit_depth=depth)
+
+
+def _check_nonfinite(path: Path, bad: np.ndarray, mask: str | Path | None) -> None:
+    """Refuse the photo's NaN/Inf pixels (`bad`, (H, W)) unless the mask leaves every one out."""
+    if mask is None:
+        raise InputError(f"{int(bad.sum())} pixels are NaN or infinite", path,
+                         "fix the render or merge that produced them, or leave them out with a mask.png "
+                         "(black = not used)")
+    used = read_mask(mask)
+    if used.shape != bad.shape:
+        raise InputError(f"mask is {used.shape[1]}x{used.shape[0]}, the photo {path.name} is "
+                         f"{bad.shape[1]}x{bad.shape[0]}", mask, "use a mask of the photo's size")
+    inside = bad & used
+    if inside.any():
+        r, c = np.argwhere(inside)[0]
+        raise InputError(f"{int(inside.sum())} pixels inside {Path(mask).name} are NaN or infinite (the first at "
+                         f"row {r}, column {c})", path,
+                         f"fix the render or merge that produced them, or paint them black in {Path(mask).name}")
 
 
 def read_grey8(path: str | Path) -> np.ndarray:
