@@ -114,6 +114,20 @@ def _nan_block(mask: str):
     return mutate
 
 
+def _renamed_as_exr(fmt):
+    """image.exr replaced by the same photo saved as a JPEG or PNG (8-bit sRGB) under the name image.exr."""
+    def mutate(scene):
+        import cv2
+
+        from pipelines.io.images import read_image, tonemap
+
+        display = np.round(tonemap(read_image(scene / "image.exr").pixels) * 255).astype(np.uint8)
+        other = scene / f"photo.{fmt}"
+        assert cv2.imwrite(str(other), display[..., ::-1])
+        other.replace(scene / "image.exr")
+    return mutate
+
+
 def _png(name, shape, value):
     def mutate(scene):
         from pipelines.io.images import write_png
@@ -226,6 +240,8 @@ BAD_INPUT = [
     ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, _file("image.exr")),
     ("image-nan", _exr("image.exr", (144, 192, 3), nan=True), CHECK, _file("image.exr")),
     ("image-nan-inside-mask", _nan_block("in"), CHECK, _file("image.exr")),
+    ("image-jpeg-named-exr", _renamed_as_exr("jpg"), CHECK, _file("image.exr")),
+    ("image-png-named-exr-render", _renamed_as_exr("png"), RENDER, _file("image.exr")),
     ("image-nan-inside-mask-render", _nan_block("in"), RENDER, _file("image.exr")),
     ("image-nan-mask-wrong-size", _nan_block("wrong-size"), CHECK, _file("mask.png")),
     ("mask-empty", _png("mask.png", (144, 192, 3), 0), VIS, _file("mask.png")),

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from pipelines.errors import InputError
-from pipelines.io.images import linear_to_srgb, read_image, read_latlong, srgb_to_linear, tonemap, write_exr, write_png
+from pipelines.io.images import (linear_to_srgb, read_grey8, read_image, read_latlong, srgb_to_linear, tonemap, write_exr,
+                                 write_png)
 
 
 def write_raw(path, array, fmt_name):
@@ -109,6 +110,36 @@ def test_nonfinite_pixels_and_a_mask_of_another_size_raise_naming_the_mask(tmp_p
     with pytest.raises(InputError) as info:
         read_image(write_raw(tmp_path / "photo.exr", img, "float"), mask=mask)
     assert info.value.path == mask and "mask is 5x4, the photo photo.exr is 6x4" in str(info.value)
+
+
+@pytest.mark.parametrize("written, named, says", [
+    ("jpg", "photo.exr", "holds JPEG data, not EXR as its name (.exr) says. Rename it to photo.jpg, or convert it to EXR"),
+    ("png", "photo.exr", "holds PNG data, not EXR as its name (.exr) says. Rename it to photo.png, or convert it to EXR"),
+    ("png", "photo.hdr", "holds PNG data, not HDR as its name (.hdr) says. Rename it to photo.png"),
+    ("exr", "photo.png", "holds EXR data, not PNG as its name (.png) says. Rename it to photo.exr"),
+    ("png", "photo.jpg", "holds PNG data, not JPEG as its name (.jpg) says. Rename it to photo.png"),
+])
+def test_content_of_another_format_than_the_name_is_refused(tmp_path, written, named, says):
+    """A JPEG renamed .exr would be read as 8-bit sRGB where the name promises linear radiance:
+    OpenImageIO says which format it read, and a disagreement with the name is one clear error."""
+    import shutil
+
+    fmt = "float" if written == "exr" else "uint8"
+    src = write_raw(tmp_path / f"src.{written}", np.full((4, 6, 3), 0.5 if fmt == "float" else 128,
+                                                       np.float32 if fmt == "float" else np.uint8), fmt)
+    path = tmp_path / named
+    shutil.copy(src, path)
+    for read in (read_image, read_grey8):
+        with pytest.raises(InputError) as info:
+            read(path)
+        assert info.value.path == path and says in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("name", ["a.jpeg", "a.jpg", "a.JPG", "a.tif", "a.tiff", "a.pfm", "a.hdr", "a.bmp"])
+def test_content_that_matches_its_name_is_read(tmp_path, name):
+    fmt = "float" if name.endswith(("pfm", "hdr")) else "uint8"
+    img = np.full((4, 6, 3), 0.5 if fmt == "float" else 128, np.float32 if fmt == "float" else np.uint8)
+    assert read_image(write_raw(tmp_path / name, img, fmt)).pixels.shape == (4, 6, 3)
 
 
 def test_small_negative_exr_values_are_clipped_to_zero(tmp_path):

@@ -7,6 +7,7 @@ clipped (saturated) pixel, which the solvers must not fit as if exact (DESIGN §
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,9 +65,40 @@ def _open(path: Path):
     if buf.has_error:
         detail = (buf.geterror().splitlines() or ["unknown format"])[0]
         raise InputError(f"cannot read image ({detail})", path, "re-export it as EXR, PNG or JPEG")
+    _check_format_matches_name(path, buf.file_format_name)
     if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
         raise InputError("JPEG file is truncated (no end-of-image marker)", path, "copy or export the photo again")
     return buf
+
+
+_FORMAT_LABELS = {"openexr": "EXR", "jpeg2000": "JPEG 2000", "jpegxl": "JPEG XL", "pnm": "PNM/PFM"}
+
+
+@functools.cache
+def _format_extensions() -> dict[str, list[str]]:
+    """OpenImageIO's formats and their file extensions ({'openexr': ['exr', 'sxr', 'mxr'], ...})."""
+    import OpenImageIO as oiio
+
+    found = {}
+    for item in oiio.get_string_attribute("extension_list").split(";"):
+        fmt, _, exts = item.partition(":")
+        found[fmt] = [e.lower() for e in exts.split(",") if e]
+    return found
+
+
+def _check_format_matches_name(path: Path, fmt: str) -> None:
+    """Refuse a file whose content is another format than its name says (a JPEG renamed .exr
+    would be read as 8-bit sRGB where the name promises linear radiance)."""
+    suffix = path.suffix.lower().lstrip(".")
+    formats = _format_extensions()
+    named = [f for f, exts in formats.items() if suffix in exts]
+    if not fmt or not named or fmt in named:
+        return
+    label = _FORMAT_LABELS.get(fmt, fmt.upper())
+    expected = _FORMAT_LABELS.get(named[0], named[0].upper())
+    ext = (formats.get(fmt) or [fmt])[0]
+    raise InputError(f"the file holds {label} data, not {expected} as its name (.{suffix}) says", path,
+                     f"rename it to {path.stem}.{ext}, or convert it to {expected}")
 
 
 def _jpeg_complete(path: Path) -> bool:
