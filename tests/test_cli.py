@@ -372,6 +372,20 @@ def test_nan_pixels_the_mask_leaves_out_are_not_refused(scene):
         read_image(scene / "image.exr")  # without the mask every pixel counts
 
 
+def test_spreadsheet_csv_is_read(scene):
+    """correspondences.csv as a spreadsheet saves it (byte-order mark, CRLF, ';' and decimal commas,
+    a trailing empty line) is read: `check` counts its points."""
+    path = scene / "correspondences.csv"
+    lines = path.read_text().splitlines()
+    n = len(lines) - 1
+    sheet = [ln.replace(",", ";") for ln in lines[:1]] + [";".join(c.replace(".", ",") for c in ln.split(","))
+                                                          for ln in lines[1:]]
+    path.write_bytes(("\ufeff" + "\r\n".join(sheet) + "\r\n\r\n").encode())
+    result = invoke(scene, "check")
+    ok(result)
+    assert f"correspondences.csv: {n} points" in result.stdout
+
+
 def test_render_with_bad_photo_leaves_results_untouched(scene):
     before = snapshot(scene)
     _exr("image.exr", (10, 10, 3))(scene)

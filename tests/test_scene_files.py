@@ -191,6 +191,52 @@ def test_correspondences_tolerate_spaces_case_and_blank_lines(tmp_path):
     np.testing.assert_array_equal(xyz[-1], [18, 19, 20])
 
 
+SHEET_ROWS = [[12.5, 7.25, 0.1, -0.2, 0.3], [100.0, 50.5, 1.0, 2.0, 3.0], [3.0, 4.0, -1.5, 0.0, 2.25],
+              [640.0, 480.0, 0.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0, 5.0]]
+
+
+def _sheet(delimiter=",", decimal=".", bom="\ufeff", end="\r\n", encoding="utf-8"):
+    def cell(v):
+        return repr(v).replace(".", decimal)
+    lines = [delimiter.join("uvxyz")] + [delimiter.join(cell(v) for v in r) for r in SHEET_ROWS]
+    return (bom + end.join(lines) + end + end).encode(encoding)  # a trailing empty line
+
+
+@pytest.mark.parametrize("content", [
+    pytest.param(_sheet(), id="bom-crlf-trailing-empty-line"),
+    pytest.param(_sheet(bom="", end="\r"), id="cr-only"),
+    pytest.param(_sheet(";", ","), id="semicolons-decimal-commas"),
+    pytest.param(_sheet(";", "."), id="semicolons-decimal-points"),
+    pytest.param(_sheet("\t"), id="tabs"),
+    pytest.param(_sheet(bom="", encoding="utf-16"), id="utf-16"),  # the codec writes the BOM
+    pytest.param(_sheet().replace(b"u,v,x,y,z", b'"u","v","x","y","z"'), id="quoted-header"),
+])
+def test_correspondences_saved_by_a_spreadsheet(tmp_path, content):
+    """Was: a spreadsheet's byte-order mark made the header '\ufeffu,v,x,y,z' and the file was
+    refused. The BOM, CRLF / CR line ends, a trailing empty line, ';' separators (with decimal
+    commas, as European spreadsheets write) and tabs are read to the same numbers."""
+    path = tmp_path / "correspondences.csv"
+    path.write_bytes(content)
+    uv, xyz = read_correspondences(path)
+    np.testing.assert_array_equal(np.hstack([uv, xyz]), SHEET_ROWS)
+
+
+@pytest.mark.parametrize("header, shown", [("\ufeffx,y,z,u,v", "x,y,z,u,v"), ("\ufeffu;v;x;y", "u;v;x;y"),
+                                           ("u,v,x,y;z", "u,v,x,y;z")])
+def test_correspondences_wrong_header_is_still_refused(tmp_path, header, shown):
+    path = tmp_path / "correspondences.csv"
+    path.write_bytes((header + "\r\n" + "\r\n".join(",".join(map(repr, r)) for r in SHEET_ROWS) + "\r\n").encode())
+    msg = assert_input_error(read_correspondences, path, f"header must be 'u,v,x,y,z', got {shown!r}")
+    assert "\ufeff" not in msg
+
+
+def test_correspondences_errors_give_the_file_line_number(tmp_path):
+    """Blank lines count: the error names the line a text editor shows."""
+    path = tmp_path / "correspondences.csv"
+    path.write_text("u,v,x,y,z\n\n1,2,3,4,5\n\n6,7,8,9\n")
+    assert_input_error(read_correspondences, path, "line 5 has 4 cells")
+
+
 GOOD_ROWS = [[10 * i + 1, 10 * i + 2, i, i * i, 1.5 * i] for i in range(5)]
 BAD_CSV = {
     "header-order": (GOOD_ROWS, "x,y,z,u,v", "header"),
