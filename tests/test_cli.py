@@ -329,6 +329,54 @@ def test_usage_errors_are_clicks_one_error_line(scene, args, culprit):
     assert snapshot(scene) == before
 
 
+# Bad option values and combinations on several commands: click's own checks and the option
+# classes' (OptionError) alike are usage errors: exit 2, one line, naming the option.
+BAD_OPTIONS = [
+    ("solve-reflectance", ["solve", "--reflectance", "shiny"], "--reflectance"),
+    ("solve-basis", ["solve", "--basis", "spline"], "--basis"),
+    ("solve-levels-0", ["solve", "--levels", "0"], "--levels"),
+    ("solve-levels-beyond-R", ["solve", "--resolution", RES, "--levels", "9"], "--levels"),
+    ("solve-held-out-negative", ["solve", "--held-out", "-0.1"], "--held-out"),
+    ("solve-auto-without-held-out", ["solve", "--held-out", "0"], "--held-out"),
+    ("solve-start-shininess-0", ["solve", "--reflectance", "blinn-phong", "--shininess", "0"], "--shininess"),
+    ("compare-sh-order", ["compare", "--sh-order", "9"], "--sh-order"),
+    ("visibility-resolution-12", ["visibility", "--resolution", "12"], "--resolution"),
+    ("visibility-supersample-0", ["visibility", "--supersample", "0"], "--supersample"),
+    ("render-kd-negative", ["render", "--light", "x.exr", "--kd", "-1", "0", "0"], "--kd"),
+    ("calibrate-pattern-size", ["calibrate", "--pattern-size", "4by11"], "--pattern-size"),
+    ("register-threshold", ["register", "--outlier-threshold", "-2"], "--outlier-threshold"),
+    ("relight-view-camera-alone", ["relight", "--view-camera", "camera.json"], "--view"),
+    ("insert-radius", ["insert", "--at", "0", "0", "1", "--radius", "-1"], "--radius"),
+    ("export-face-size", ["export", "--face-size", "12"], "--face-size"),
+    ("group-lock-wait", ["--lock-wait", "-1", "status"], "--lock-wait"),
+]
+
+
+@pytest.mark.parametrize("args, option", [pytest.param(a, o, id=i) for i, a, o in BAD_OPTIONS])
+def test_bad_options_are_usage_errors(scene, args, option):
+    """Exit 2 (click's code for usage errors), exactly one line on stderr naming the option (click's
+    own usage errors included: their usage and hint lines are folded into it), no traceback,
+    nothing written."""
+    before = snapshot(scene)
+    for quiet in (False, True):
+        result = invoke(scene, *args, quiet=quiet)
+        assert result.exit_code == 2, (result.exit_code, result.output, repr(result.exception))
+        assert isinstance(result.exception, SystemExit), repr(result.exception)
+        lines = result.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("Error: ") and option in lines[0], result.stderr
+        assert "Traceback" not in result.output and result.stdout == ""
+    assert snapshot(scene) == before
+
+
+@pytest.mark.parametrize("args", [["solve", "--levels", "0"], ["visibility", "--resolution", "big"]],
+                         ids=["option-check", "click"])
+def test_bad_option_real_process_exits_2_with_one_line(scene, args):
+    proc = subprocess.run([wavelight_exe(), "-s", str(scene), *args], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stdout == "" and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith("Error: ") and args[1] in proc.stderr
+
+
 SUBPROCESS_CASES = [
     ("camera-invalid-json", _write("camera.json", "{"), VIS, "camera.json"),
     ("mesh-garbage", _write("mesh.obj", GARBAGE), VIS, "mesh.obj"),

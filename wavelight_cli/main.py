@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from pipelines.errors import InputError
+from pipelines.errors import InputError, OptionError
 
 from .console import Console
 from .scene import material_from_options, scene_folder
@@ -61,13 +61,39 @@ def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
     return InputError(lines[0], where, fix).line()
 
 
+def one_line_usage_error(exc: click.UsageError) -> click.UsageError:
+    """click's usage error as one line: click prints the usage and a hint above its `Error:` line
+    when the error has a context; the hint goes on the line instead."""
+    ctx, hint = exc.ctx, ""
+    if ctx is not None and ctx.command.get_help_option(ctx) is not None:
+        hint = f" Try '{ctx.command_path} {ctx.help_option_names[0]}' for help."
+    one = click.UsageError(" ".join(exc.format_message().split()) + hint)  # no context: just the Error line
+    one.exit_code = exc.exit_code
+    return one
+
+
 class WavelightGroup(click.Group):
     """Turns InputError and file-system failures into one `Error: ...` line and exit code 1 (no
-    traceback)."""
+    traceback); usage errors (click's, and OptionError: a bad option value or combination) into one
+    line and exit code 2."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent, **extra)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as exc:  # the group's own options
+            raise one_line_usage_error(exc) from None
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as exc:  # an unknown command, a command's options
+            raise one_line_usage_error(exc) from None
+        except OptionError as exc:
+            raise click.UsageError(exc.line()) from None
         except InputError as exc:
             raise click.ClickException(exc.line()) from None
         except (OSError, RuntimeError) as exc:

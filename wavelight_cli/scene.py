@@ -8,7 +8,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipelines.errors import InputError, require_file
+from pipelines.errors import InputError, OptionError, require_file
 
 IMAGE_NAMES = ("image.exr", "image.hdr", "image.pfm", "image.tif", "image.tiff", "image.png",
                "image.jpg", "image.jpeg")
@@ -140,6 +140,8 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
     try:
         return Material.from_json(data)
     except (ValueError, TypeError) as exc:
+        if material_file is None:  # the values are the options' (--kd, --ks, --shininess)
+            raise OptionError(str(exc), None, "fix --kd / --ks / --shininess") from None
         raise InputError(str(exc), material_file, "fix the material values") from None
 
 
