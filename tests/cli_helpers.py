@@ -175,10 +175,12 @@ def baseline_scene(tmp_path_factory) -> Path:
     return _BASELINE["scene"]
 
 
-def assert_one_error_line(result, culprit: str, quiet: bool) -> str:
-    """A failed command: exit 1, no traceback, exactly one `Error:` line, last on stderr, naming
-    `culprit`; with -q nothing else printed, otherwise only `stage: ...` progress before it."""
-    assert result.exit_code == 1, (result.exit_code, result.output)
+def assert_one_error_line(result, culprit: str, quiet: bool, code: int | None = None) -> str:
+    """A failed command: exit 1 (exit 2, a usage error, when `culprit` is an option: `--name`;
+    `code` overrides), no traceback, exactly one `Error:` line, last on stderr, naming `culprit`;
+    with -q nothing else printed, otherwise only `stage: ...` progress before it."""
+    code = code if code is not None else 2 if culprit.startswith("--") else 1
+    assert result.exit_code == code, (result.exit_code, result.output)
     # Anything but SystemExit means an exception escaped the CLI (a traceback for a real user).
     assert isinstance(result.exception, SystemExit), repr(result.exception)
     assert "Traceback" not in result.output

@@ -188,3 +188,10 @@ def lambert_solved(tmp_path_factory):
     scene = copy_sample(tmp_path_factory.mktemp("lambert_solved") / "scene")
     ok(invoke(scene, "solve", "--resolution", RES, "--reflectance", "lambert"))
     return scene
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    """One folder per module for the property tests: each example overwrites its files
+    (module-scoped, so hypothesis needs no health-check exemption for a function-scoped fixture)."""
+    return tmp_path_factory.mktemp("props")

@@ -11,7 +11,7 @@ import subprocess
 
 import pytest
 
-from cli_helpers import (RES, copy_sample, decision_line, h5_arrays, invoke, kill_when, manifest, ok, render_args, rotate_pose, run_proc, sha256, snapshot, wavelight_exe, VIS_STAGE, VIS_H5, vis_stage, vis_file)
+from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, render_args, rotate_pose, run_proc, sha256, snapshot, wavelight_exe, VIS_STAGE, VIS_H5, vis_stage, vis_file)
 from wavelight_cli.stages.visibility import CHUNK_PIXELS
 
 
@@ -224,6 +224,46 @@ def test_garbage_manifest_means_rebuild_not_crash(scene, baseline_arrays, conten
     assert rec["outputs"] == {VIS_H5: sha256(scene / VIS_H5)}
     err = _vis(scene)
     assert decision_line(err, VIS_STAGE).startswith(f"{VIS_STAGE}: skipped, up to date")
+
+
+CAL = ["calibrate", "--pattern", "acircles", "--pattern-size", "4x11", "--spacing", "10mm"]
+
+
+@pytest.mark.parametrize("loss", ["deleted", "garbage"])
+def test_lost_manifest_keeps_the_records_camera_and_pose_carry(tmp_path, loss):
+    """camera.json and pose.json carry the record of the calibrate / register run that wrote them.
+    After the manifest is lost, both stages are still up to date, a later register that rebuilds
+    the manifest keeps calibrate's record (camera.json is calibrate's, not hand-written: a new
+    calibration may replace it), and a camera.json edited since is not taken for calibrate's."""
+    scene = copy_sample(tmp_path / "scene", calibrated=False)
+    ok(invoke(scene, *CAL))
+    ok(invoke(scene, "register"))
+    before = manifest(scene)["stages"]
+    edited = copy_scene(scene, tmp_path / "edited")
+    for s in (scene, edited):
+        path = s / ".wavelight" / "manifest.json"
+        path.unlink() if loss == "deleted" else path.write_bytes(b"\x00 not json")
+
+    _, rows = _status(scene)
+    assert {s: (r["state"], r["key"]) for s, r in rows.items()} == {
+        s: ("fresh", before[s]["key"][:12]) for s in ("calibrate", "register")}
+    assert decision_line(ok(invoke(scene, "register")), "register").startswith("register: skipped, up to date")
+    err = ok(invoke(scene, "register", "--max-mesh-distance", "0.02"))  # reruns, and writes a new manifest
+    assert decision_line(err, "register").startswith("register: running (params changed: max_mesh_distance")
+    stages = manifest(scene)["stages"]
+    assert stages["calibrate"]["key"] == before["calibrate"]["key"]
+    assert stages["calibrate"]["outputs"]["camera.json"] == sha256(scene / "camera.json")
+    assert decision_line(ok(invoke(scene, *CAL)), "calibrate").startswith("calibrate: skipped, up to date")
+    err = ok(invoke(scene, *CAL[:-1], "11mm"))  # replaces camera.json: it is calibrate's
+    assert decision_line(err, "calibrate").startswith("calibrate: running (params changed: spacing")
+    assert json.loads((scene / "camera.json").read_text())["calibration"]["spacing_m"] == pytest.approx(0.011)
+
+    cam = json.loads((edited / "camera.json").read_text())
+    cam["fx"] += 1.0  # edited by hand: its record no longer proves its content
+    (edited / "camera.json").write_text(json.dumps(cam, indent=1))
+    assert "calibrate" not in _status(edited)[1]
+    line = assert_one_error_line(invoke(edited, *CAL[:-1], "11mm"), str(edited / "camera.json"), quiet=False)
+    assert "was not written by wavelight calibrate as it is now" in line
 
 
 # -- status -------------------------------------------------------------------------------------

@@ -9,13 +9,15 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import signal
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, run_proc, snapshot, wavelight_exe, VIS_STAGE)
+from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, run_proc, snapshot, vis_file, vis_stage, wavelight_exe, VIS_H5, VIS_STAGE)
 from pipelines.io import images
 from pipelines.io.files import atomic_output, is_temporary, output_set
 
@@ -76,6 +78,153 @@ def test_disk_full_during_solve_keeps_old_results(lambert_solved, tmp_path, monk
     line = assert_one_error_line(result, "relit.exr", quiet=False)
     assert "no space left on device" in line and "Free some disk space" in line
     assert calls == ["light_latlong.exr", "light_cross.exr", "relit.exr"]
+    assert snapshot(scene) == before
+    assert temporaries(scene) == []
+
+
+# A write that fails: OSError(ENOSPC) as Python's own writes raise it, or an OSError with no errno
+# at all (some libraries raise one with a message only, or nothing).
+WRITE_ERRORS = {"enospc": lambda: OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), "no-errno": lambda: OSError()}
+
+
+def _says_why(line: str, kind: str) -> None:
+    if kind == "enospc":
+        assert "no space left on device" in line and "Free some disk space" in line, line
+    else:
+        assert "the write failed" in line and "Check that the disk has free space" in line, line
+
+
+class _HalfWriter:
+    """A file whose first write puts half its bytes on disk, then fails (a disk filling up)."""
+
+    def __init__(self, f, exc: OSError):
+        self.f, self.exc = f, exc
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+    def write(self, data):
+        data = memoryview(data).cast("B")
+        self.f.write(data[: len(data) // 2])
+        self.f.flush()
+        raise self.exc
+
+
+@pytest.mark.parametrize("kind", WRITE_ERRORS)
+def test_disk_full_writing_the_visibility_file(scene, monkeypatch, kind):
+    """The HDF5 file is built in memory and written through atomic_output (files.h5_file): when
+    that write fails halfway, the old visibility file and the manifest stay as they were, no temp
+    file is left, and the one error line names the .h5 file; once the disk has room the cache is
+    still up to date."""
+    from pipelines.io import files
+
+    before = snapshot(scene)
+
+    def failing_open(path, mode="r", *args, **kwargs):
+        f = open(path, mode, *args, **kwargs)
+        return _HalfWriter(f, WRITE_ERRORS[kind]()) if "w" in mode else f
+
+    monkeypatch.setattr(files, "open", failing_open, raising=False)  # h5_file's write (files.py's only open)
+    line = assert_one_error_line(invoke(scene, "visibility", "--resolution", RES, "--force"), VIS_H5, quiet=False)
+    _says_why(line, kind)
+    assert snapshot(scene) == before
+    assert temporaries(scene) == []
+    monkeypatch.undo()
+    assert decision_line(ok(invoke(scene, "visibility", "--resolution", RES)), VIS_STAGE).startswith(
+        f"{VIS_STAGE}: skipped, up to date")
+
+
+@pytest.mark.parametrize("kind", WRITE_ERRORS)
+def test_disk_full_writing_a_visibility_chunk(tmp_path, monkeypatch, kind):
+    """The exact method saves its rows in chunk files (np.save) that outlive a failed run: the
+    third save fails halfway. One error line names that chunk; the two finished chunks stay whole,
+    nothing else is left (no temp file, no half chunk, no visibility file, no record), and the
+    next run resumes from the two chunks."""
+    scene = copy_sample(tmp_path / "scene")
+    args = ["visibility", "--resolution", RES, "--visibility", "exact"]
+    real_save = np.save
+    saves = []
+
+    def failing_save(f, arr, *rest, **kwargs):
+        saves.append(len(arr))
+        if len(saves) == 3:
+            f.write(b"\x93NUMPY" + bytes(100))  # the start of the file, then the disk is full
+            raise WRITE_ERRORS[kind]()
+        return real_save(f, arr, *rest, **kwargs)
+
+    monkeypatch.setattr(np, "save", failing_save)
+    line = assert_one_error_line(invoke(scene, *args), "chunk_00002.npy", quiet=False)
+    _says_why(line, kind)
+    partial = list((scene / ".wavelight" / "partial").iterdir())
+    assert len(partial) == 1
+    assert sorted(p.name for p in partial[0].iterdir()) == ["chunk_00000.npy", "chunk_00001.npy"]
+    for p in partial[0].iterdir():
+        assert np.load(p, allow_pickle=False).shape[0] == saves[0]
+    assert not vis_file(scene, slot="-exact").exists()
+    assert not (scene / ".wavelight" / "manifest.json").exists() or \
+        vis_stage(slot="-exact") not in manifest(scene)["stages"]
+    assert temporaries(scene) == []
+    monkeypatch.undo()
+    err = ok(invoke(scene, *args))
+    assert re.search(r": resuming, 2/\d+ chunks already done$", err, re.M), err
+    assert vis_file(scene, slot="-exact").is_file()
+
+
+class _FailingImageOutput:
+    """OpenImageIO's ImageOutput whose write fails: by raising `failure` (an OSError) or, as
+    OpenImageIO itself does, by returning False with `failure` (text) as its error."""
+
+    def __init__(self, failure):
+        self.failure = failure
+
+    def open(self, name, spec):
+        with open(name, "wb") as f:
+            f.write(b"v/1\x01 half an image")
+        return True
+
+    def write_image(self, arr):
+        if isinstance(self.failure, OSError):
+            raise self.failure
+        return False
+
+    def close(self):
+        return True
+
+    def geterror(self):
+        return self.failure
+
+
+@pytest.mark.parametrize("name, failure, says", [
+    pytest.param("relit.exr", WRITE_ERRORS["enospc"], "no space left on device", id="exr-enospc"),
+    pytest.param("relit.exr", WRITE_ERRORS["no-errno"], "the write failed", id="exr-oserror-without-errno"),
+    pytest.param("relit.exr", lambda: "", "cannot write the image (unknown error)", id="exr-oiio-no-detail"),
+    pytest.param("light_cross.png", lambda: "PNG write error", "cannot write the image (PNG write error)",
+                 id="png-oiio-message"),
+])
+def test_failed_image_write_during_solve_is_one_error_line(lambert_solved, tmp_path, monkeypatch, name, failure,
+                                                           says):
+    """An image of the solve's outputs cannot be written (OpenImageIO gives no errno: it returns
+    False with a message, maybe empty; a binding may raise an OSError without errno): one error
+    line naming the image, exit 1, every earlier result and the manifest as they were, no temp
+    file. (The preview PNGs with text go through outputs.write_display_png, the EXRs through
+    images.write_exr.)"""
+    import OpenImageIO as oiio
+
+    scene = copy_scene(lambert_solved, tmp_path / "scene")
+    before = snapshot(scene)
+    real_create = oiio.ImageOutput.create
+
+    def create(filename, *args):
+        if Path(filename).name.startswith(f".{name}."):
+            return _FailingImageOutput(failure())
+        return real_create(filename, *args)
+
+    monkeypatch.setattr(oiio.ImageOutput, "create", create)
+    line = assert_one_error_line(invoke(scene, *SOLVE, "--force"), str(scene / "out" / name), quiet=False)
+    assert says in line, line
     assert snapshot(scene) == before
     assert temporaries(scene) == []
 

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from pipelines.errors import InputError
-from pipelines.io.images import linear_to_srgb, read_image, read_latlong, srgb_to_linear, tonemap, write_exr, write_png
+from pipelines.io.images import (linear_to_srgb, read_grey8, read_image, read_latlong, srgb_to_linear, tonemap, write_exr,
+                                 write_png)
 
 
 def write_raw(path, array, fmt_name):
@@ -72,6 +73,73 @@ def test_nonfinite_exr_pixels_raise_naming_the_file(tmp_path, bad):
     assert "photo_bad.exr" in str(info.value)
     assert info.value.path == path
     assert "2 pixels" in str(info.value)
+
+
+def _mask_png(path, keep):
+    write_raw(path, np.repeat(keep[..., None], 3, axis=2).astype(np.uint8) * 255, "uint8")
+    return path
+
+
+def test_nonfinite_pixels_the_mask_leaves_out_read_as_zero(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0], img[3, 5] = np.nan, np.inf
+    keep = np.ones((4, 6), bool)
+    keep[1, 2] = keep[3, 5] = False
+    loaded = read_image(write_raw(tmp_path / "photo.exr", img, "float"), mask=_mask_png(tmp_path / "mask.png", keep))
+    assert np.all(loaded.pixels[~keep] == 0.0)
+    np.testing.assert_array_equal(loaded.pixels[keep], img[keep])
+
+
+def test_nonfinite_pixels_inside_the_mask_raise_naming_the_photo_and_the_mask(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[1, 2, 0], img[3, 5] = np.nan, np.inf
+    keep = np.ones((4, 6), bool)
+    keep[1, 2] = False  # the NaN is left out, the Inf is not
+    path = write_raw(tmp_path / "photo.exr", img, "float")
+    with pytest.raises(InputError) as info:
+        read_image(path, mask=_mask_png(tmp_path / "mask.png", keep))
+    assert info.value.path == path
+    assert "1 pixels inside mask.png are NaN or infinite (the first at row 3, column 5)" in str(info.value)
+    assert "paint them black in mask.png" in str(info.value)
+
+
+def test_nonfinite_pixels_and_a_mask_of_another_size_raise_naming_the_mask(tmp_path):
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    img[0, 0] = np.nan
+    mask = _mask_png(tmp_path / "mask.png", np.ones((4, 5), bool))
+    with pytest.raises(InputError) as info:
+        read_image(write_raw(tmp_path / "photo.exr", img, "float"), mask=mask)
+    assert info.value.path == mask and "mask is 5x4, the photo photo.exr is 6x4" in str(info.value)
+
+
+@pytest.mark.parametrize("written, named, says", [
+    ("jpg", "photo.exr", "holds JPEG data, not EXR as its name (.exr) says. Rename it to photo.jpg, or convert it to EXR"),
+    ("png", "photo.exr", "holds PNG data, not EXR as its name (.exr) says. Rename it to photo.png, or convert it to EXR"),
+    ("png", "photo.hdr", "holds PNG data, not HDR as its name (.hdr) says. Rename it to photo.png"),
+    ("exr", "photo.png", "holds EXR data, not PNG as its name (.png) says. Rename it to photo.exr"),
+    ("png", "photo.jpg", "holds PNG data, not JPEG as its name (.jpg) says. Rename it to photo.png"),
+])
+def test_content_of_another_format_than_the_name_is_refused(tmp_path, written, named, says):
+    """A JPEG renamed .exr would be read as 8-bit sRGB where the name promises linear radiance:
+    OpenImageIO says which format it read, and a disagreement with the name is one clear error."""
+    import shutil
+
+    fmt = "float" if written == "exr" else "uint8"
+    src = write_raw(tmp_path / f"src.{written}", np.full((4, 6, 3), 0.5 if fmt == "float" else 128,
+                                                       np.float32 if fmt == "float" else np.uint8), fmt)
+    path = tmp_path / named
+    shutil.copy(src, path)
+    for read in (read_image, read_grey8):
+        with pytest.raises(InputError) as info:
+            read(path)
+        assert info.value.path == path and says in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("name", ["a.jpeg", "a.jpg", "a.JPG", "a.tif", "a.tiff", "a.pfm", "a.hdr", "a.bmp"])
+def test_content_that_matches_its_name_is_read(tmp_path, name):
+    fmt = "float" if name.endswith(("pfm", "hdr")) else "uint8"
+    img = np.full((4, 6, 3), 0.5 if fmt == "float" else 128, np.float32 if fmt == "float" else np.uint8)
+    assert read_image(write_raw(tmp_path / name, img, fmt)).pixels.shape == (4, 6, 3)
 
 
 def test_small_negative_exr_values_are_clipped_to_zero(tmp_path):

@@ -12,7 +12,10 @@ bounds leave a margin of a few x (never orders of magnitude) above them.
 import h5py
 import numpy as np
 import pytest
+from hypothesis import event, given
+from hypothesis import strategies as st
 from scipy import optimize
+from scipy.optimize import nnls as scipy_nnls
 
 from pipelines.light import haar
 from pipelines.light import solution as lt
@@ -24,6 +27,8 @@ from pipelines.light.haar import HaarTree
 from pipelines.light.system import LightSystem, SystemPart, build_normal_equations, holdout_mask
 from pipelines.model.materials import Material
 from pipelines.model.render import render, transport
+from property_helpers import props
+from test_nnls import kkt_tolerance, objective_tolerance
 from test_render import make_vis
 
 SCENE = "spot_overcast"
@@ -471,3 +476,232 @@ def test_solution_file_round_trip(scene8, sun_sky8, tmp_path, basis):
         f.attrs["format"] = "something-else"
     with pytest.raises(ValueError):
         light_file.read_solution_light(tmp_path / "other.h5")
+
+
+# == properties (hypothesis): the light solve on random small scenes =============================
+#
+# Random non-negative transports at a tiny cube map (12, 24 or 48 texels), a random non-negative
+# light, noise, a held-out pixel set or none, and the three channel layouts of SystemPart (one G
+# for all channels; G shared up to channel_scale a_c, T_c = a_c T, as build_normal_equations makes
+# for proportional kd, ks; one G per channel). Entries are 0 or in [0.01, 1] (the dynamic range of
+# the NNLS section: blind texels are exactly zero columns).
+
+_CUBES: dict[tuple[int, bool], CubeMap] = {}
+
+
+def cube_map(R: int, hemisphere: bool) -> CubeMap:
+    if (R, hemisphere) not in _CUBES:
+        _CUBES[R, hemisphere] = CubeMap(R, hemisphere)
+    return _CUBES[R, hemisphere]
+
+
+@st.composite
+def light_scenes(draw):
+    R, hemisphere = draw(st.sampled_from([(2, True), (2, False), (4, True)]))
+    cube = cube_map(R, hemisphere)
+    N = cube.n_texels
+    m = draw(st.integers(1, 40))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    density = draw(st.sampled_from([0.1, 0.4, 1.0]))
+
+    def transport():
+        return rng.uniform(0.01, 1.0, (m, N)) * (rng.random((m, N)) < density)
+
+    T = transport()
+    blind = np.zeros(N, bool)
+    blind[draw(st.lists(st.integers(0, N - 1), max_size=N // 2))] = True
+    kind = draw(st.sampled_from(["suns", "sky", "random", "zero"]))
+    L = np.zeros((N, 3))
+    if kind == "suns":
+        L[rng.integers(0, N, rng.integers(1, 4))] = rng.uniform(1, 50, (1, 3))
+    elif kind == "sky":
+        L[:] = rng.uniform(0.1, 1.0, 3)
+    elif kind == "random":
+        L = rng.uniform(0, 1, (N, 3)) * (rng.random((N, 1)) < 0.5)
+    layout = draw(st.sampled_from(["shared", "scaled", "per-channel"]))
+    if layout == "shared":
+        a = None
+        Ts = [T, T, T]
+    elif layout == "scaled":
+        a = np.array(draw(st.lists(st.sampled_from([0.0, 0.25, 1.0]) | st.floats(0.01, 2.0), min_size=3, max_size=3)))
+        Ts = [a[c] * T for c in range(3)]
+    else:
+        a = None
+        Ts = [rng.uniform(0.2, 2.0) * T + 0.5 * transport() for _ in range(3)]
+    Ts = [np.where(blind[None, :], 0.0, Tc) for Tc in Ts]
+    clean = np.column_stack([Ts[c] @ L[:, c] for c in range(3)])
+    noise = draw(st.sampled_from([0.0, 1e-3, 0.1, 1.0]))
+    b = clean + noise * max(float(np.abs(clean).mean()), 1e-3) * rng.normal(size=(m, 3))
+    held = rng.random(m) < draw(st.sampled_from([0.0, 0.0, 0.3]))
+
+    def part(sel) -> SystemPart:
+        bs = b[sel]
+        bb = (bs**2).sum(axis=0)
+        if layout == "per-channel":
+            G = np.stack([Tc[sel].T @ Tc[sel] for Tc in Ts])
+            h = np.column_stack([Ts[c][sel].T @ bs[:, c] for c in range(3)])
+            return SystemPart(G, h, bb, int(sel.sum()))
+        base = T[sel] * ~blind[None, :]
+        h = base.T @ bs
+        if a is not None:
+            h = h * a[None, :]  # T_c = a_c T: h_c = a_c T'b_c, G_c = a_c^2 T'T
+        return SystemPart(base.T @ base, h, bb, int(sel.sum()), a)
+
+    ne = LightSystem(part(~held), part(held), 0.0)
+    return {"cube": cube, "Ts": Ts, "b": b, "blind": blind, "ne": ne, "truth": L,
+            "seed": int(rng.integers(0, 2**32))}
+
+
+def direct_residual(Ts, b, light) -> float:
+    """sum_c |T_c L_c - b_c|^2 over all pixels, from the transport itself (not from G)."""
+    return float(sum(np.sum((Ts[c] @ light[:, c] - b[:, c]) ** 2) for c in range(3)))
+
+
+def residual_tolerance(Ts, b, *lights) -> float:
+    """Rounding of |TL - b|^2 and of the solves: 1e-9 of the sizes involved (the NNLS is exact to
+    ~1e-14 of them; float64 G, no float32 anywhere here)."""
+    size = float(np.sum(b**2)) + sum(float(sum(np.sum((Ts[c] @ L[:, c]) ** 2) for c in range(3))) for L in lights)
+    return 1e-9 * size + 1e-300
+
+
+BASIS_CASES = [("wavelet", False), ("quadtree", False), ("discrete", False), ("points", False), ("sh", True),
+               ("sh", False)]
+
+
+@props(60)
+@pytest.mark.parametrize("basis, sh_nonnegative", BASIS_CASES)
+@given(scene=light_scenes(), levels=st.sampled_from(["auto", 1, 2, 3]))
+def test_light_solve_is_non_negative_and_fits_no_worse_than_no_light(basis, sh_nonnegative, scene, levels):
+    cube, Ts, b, ne = scene["cube"], scene["Ts"], scene["b"], scene["ne"]
+    sol = bases.solve(ne, cube, basis, levels=levels, sh_nonnegative=sh_nonnegative)
+    light = sol.light
+    assert light.shape == (cube.n_texels, 3) and np.all(np.isfinite(light))
+    peak = float(np.abs(light).max(initial=0.0))
+    if basis != "sh" or sh_nonnegative:  # plain SH is allowed negative lobes (the paper's baseline)
+        assert light.min(initial=0.0) >= -1e-12 * peak, f"negative radiance {light.min():.3g} (peak {peak:.3g})"
+    # texels no pixel sees get no light (module docstring: they stay zero in every output)
+    assert np.all(light[scene["blind"]] == 0.0)
+    ours, zero = direct_residual(Ts, b, light), float(np.sum(b**2))
+    tol = residual_tolerance(Ts, b, light)
+    assert ours <= zero + tol, f"worse than no light: {ours:.6g} > {zero:.6g}"
+    event("lit" if np.any(light != 0) else "dark")
+    # the reported error is the error of the light it returns
+    both_bb = float(np.sum(b**2))
+    if both_bb > 0:
+        assert abs(sol.fit_rmse**2 * both_bb - ours) <= tol + 1e-9 * both_bb, (sol.fit_rmse**2 * both_bb, ours)
+        both = ne.fit.combine(ne.held_out)
+        assert abs(both.residual(light).sum() - ours) <= tol + 1e-9 * both_bb  # SystemPart.residual agrees
+    if basis != "points":
+        # a constant light is in the span of every other basis (SH's l = 0 term, a tree's roots, the
+        # texels): no worse than the best non-negative constant light
+        P = np.ones((cube.n_texels, 1))
+        best = np.column_stack([P @ scipy_nnls(Ts[c] @ P, b[:, c])[0] for c in range(3)])
+        assert ours <= direct_residual(Ts, b, best) + residual_tolerance(Ts, b, light, best), \
+            "the best constant light is better"
+    if basis in ("wavelet", "quadtree"):
+        # the chosen tree refines the 9 (or 6) tile roots: no worse than the best constant per tile
+        from pipelines.light import haar
+        P = haar.leaf_matrix(haar.HaarTree.roots(cube.tile_sizes)).toarray()
+        best = np.column_stack([P @ scipy_nnls(Ts[c] @ P, b[:, c], maxiter=1000)[0] for c in range(3)])
+        assert ours <= direct_residual(Ts, b, best) + residual_tolerance(Ts, b, light, best), \
+            "a tile-constant light is better"
+    if basis == "points":
+        # the final lights are the NNLS optimum on their own directions (re-solved on all pixels)
+        on = np.flatnonzero(np.any(light > 0, axis=1))
+        best = np.zeros_like(light)
+        for c in range(3):
+            best[on, c] = scipy_nnls(Ts[c][:, on], b[:, c], maxiter=1000)[0] if len(on) else 0.0
+        assert ours <= direct_residual(Ts, b, best) + residual_tolerance(Ts, b, light, best), \
+            "other intensities of the same point lights fit better"
+
+
+@props(100)
+@given(scene=light_scenes(), data=st.data())
+def test_discrete_light_is_no_worse_than_random_non_negative_lights(scene, data):
+    cube, Ts, b = scene["cube"], scene["Ts"], scene["b"]
+    sol = bases.solve(scene["ne"], cube, "discrete")
+    light = sol.light
+    assert np.all(light >= 0) and np.all(np.isfinite(light))
+    ours = direct_residual(Ts, b, light)
+    rng = np.random.default_rng(scene["seed"])
+    N = cube.n_texels
+    scale = max(float(light.max(initial=0.0)), float(scene["truth"].max(initial=0.0)), 1.0)
+    candidates = {"truth": scene["truth"], "zero": np.zeros((N, 3))}
+    for k in range(data.draw(st.integers(1, 6), label="random probes")):
+        kind = data.draw(st.sampled_from(["uniform", "sparse", "around", "one texel"]), label=f"probe {k}")
+        if kind == "uniform":
+            p = rng.uniform(0, scale, (N, 3))
+        elif kind == "sparse":
+            p = rng.uniform(0, 2 * scale, (N, 3)) * (rng.random((N, 1)) < 0.2)
+        elif kind == "around":
+            p = light + 10.0 ** rng.uniform(-6, 0) * scale * rng.normal(size=(N, 3))
+        else:
+            p = light.copy()
+            p[rng.integers(N)] += 10.0 ** rng.uniform(-6, 0) * scale * rng.choice([-1, 1], 3)
+        candidates[f"{kind} {k}"] = np.maximum(p, 0.0)
+    for name, p in candidates.items():
+        theirs = direct_residual(Ts, b, p)
+        # KKT within 1e-7 of the gradient's scale (section 2) bounds how much any feasible light
+        # can gain: 2 x 1e-7 (max|G| |L|_1 + max|h|) |p - L|_1 per channel, plus rounding
+        gain = 0.0
+        for c in range(3):
+            G, h = Ts[c].T @ Ts[c], Ts[c].T @ b[:, c]
+            gain += 2 * objective_tolerance(G, h, light[:, c], p[:, c], kkt_tolerance(G, h, light[:, c]))
+        assert ours <= theirs + gain + residual_tolerance(Ts, b, light, p), f"{name}: {ours:.8g} > {theirs:.8g}"
+
+
+def rescaled(ne: LightSystem, s: float) -> LightSystem:
+    """The same scene photographed s times brighter: h -> s h, b'b -> s^2 b'b (G unchanged)."""
+    def part(p: SystemPart) -> SystemPart:
+        return SystemPart(p.G, s * p.h, s * s * p.bb, p.n_pixels, p.channel_scale)
+    return LightSystem(part(ne.fit), part(ne.held_out), ne.seconds)
+
+
+@props(25)
+@pytest.mark.parametrize("basis, sh_nonnegative", [c for c in BASIS_CASES if c != ("sh", True)])
+@given(scene=light_scenes(), k=st.sampled_from([-30, -10, 10, 30]))
+def test_light_solve_is_brightness_equivariant(basis, sh_nonnegative, scene, k):
+    """A photo 2^k times brighter gives a light 2^k times brighter: every threshold of the solve is
+    relative (power-of-two scaling is exact in floating point, so only rounding could differ).
+    Nonnegative SH is left out: SLSQP's stopping rule and its start are not scale-free (the fit
+    of one scene differs between brightness 1 and 2^20), so only its fit is checked (above)."""
+    cube, ne = scene["cube"], scene["ne"]
+    one = bases.solve(ne, cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
+    s = 2.0**k
+    other = bases.solve(rescaled(ne, s), cube, basis, levels="auto", sh_nonnegative=sh_nonnegative).light
+    np.testing.assert_allclose(other, s * one, rtol=1e-9, atol=1e-12 * s * float(np.abs(one).max(initial=0.0)))
+
+
+def test_nonnegative_sh_fits_no_worse_than_no_light_when_dim():
+    """Was: light._sh_nonnegative ran SLSQP with an absolute ftol (1e-15) on an objective that
+    scales with the photo's brightness squared: for a dim photo it stopped at its (shifted
+    least-squares) start, here 4.6 x worse than no light at all."""
+    cube = cube_map(2, True)
+    N, m = cube.n_texels, 2
+    rng = np.random.default_rng(5)
+    T = rng.uniform(0.01, 1, (m, N)) * (rng.random((m, N)) < 0.4)
+    L = np.zeros((N, 3))
+    L[3] = 1.0
+    b = (T @ L + 0.1 * rng.normal(size=(m, 3))) * 2.0**-30
+    part = SystemPart(T.T @ T, T.T @ b, (b**2).sum(axis=0), m)
+    empty = SystemPart(np.zeros((N, N)), np.zeros((N, 3)), np.zeros(3), 0)
+    light = bases.solve(LightSystem(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
+    assert np.all(light >= 0)
+    assert direct_residual([T] * 3, b, light) <= float(np.sum(b**2)) * (1 + 1e-9)
+
+
+def test_nonnegative_sh_on_one_dark_pixel():
+    """One pixel, a slightly negative (noise) value: G is rank one, and no light is the best
+    non-negative light. SLSQP must not wander off along G's null space, where G's rounding makes
+    huge coefficients (~1e6) look better than zero while the light fits far worse (found by
+    test_light_solve_is_non_negative_and_fits_no_worse_than_no_light; exact values matter)."""
+    cube = cube_map(2, True)
+    T = np.array([[0.5167034084532541, 0.950959059362676, 0.15271801659243742, 0.9491629526658715,
+                   0.3187131374903806, 0.4290931844828499, 0.8294255678822373, 0.4151071450054697,
+                   0.554097750796329, 0.037283522110637686, 0.7559779775880585, 0.5427618800870855]])
+    b = np.full((1, 3), -1.7477209205516195e-07)
+    part = SystemPart(T.T @ T, T.T @ b, (b**2).sum(axis=0), 1)
+    empty = SystemPart(np.zeros((12, 12)), np.zeros((12, 3)), np.zeros(3), 0)
+    light = bases.solve(LightSystem(part, empty, 0.0), cube, "sh", sh_nonnegative=True).light
+    assert np.all(light >= 0)
+    assert direct_residual([T] * 3, b, light) <= float(np.sum(b**2)) * (1 + 1e-9)

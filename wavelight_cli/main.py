@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from pipelines.errors import InputError
+from pipelines.errors import InputError, OptionError
 
 from .console import Console
 from .scene import material_from_options, scene_folder
@@ -35,28 +35,65 @@ _OS_FIXES = {
 }
 
 
+_NO_ERRNO_FIX = "check that the disk has free space and the folder is writable, then rerun (earlier results and " \
+    "finished stages are kept)"
+
+
 def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
     """One error line for a failure of the file system (full disk, permissions, ...); None when
     `exc` is not one (that is a bug, and keeps its traceback). HDF5 reports a full disk as a
-    RuntimeError naming errno 28, not as an OSError."""
+    RuntimeError naming errno 28, not as an OSError. An OSError without an errno (some libraries
+    raise one with only a message, or none) is still a file-system failure: it gets a line too."""
     code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
     if code is None and "No space left on device" in str(exc):
         code = errno.ENOSPC
-    if code is None or code not in _OS_FIXES and not isinstance(exc, OSError):
+    if code is None and not isinstance(exc, OSError):
         return None
     where = getattr(exc, "filename", None) or scene or "."
-    problem = (getattr(exc, "strerror", None) or os.strerror(code)) if code else str(exc)
-    fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
-    return InputError(problem.lower() if code else problem, where, fix).line()
+    if code is not None:
+        problem = getattr(exc, "strerror", None) or os.strerror(code)
+        problem = problem[:1].lower() + problem[1:]  # "no space left on device"; a library's detail as it is
+        fix = _OS_FIXES.get(code, "check the path and the disk, then rerun")
+    else:
+        problem = exc.strerror or (str(exc.args[0]) if exc.args else "") or "the operating system reported an error"
+        fix = _NO_ERRNO_FIX
+    lines = problem.strip().splitlines() or ["the operating system reported an error"]
+    return InputError(lines[0], where, fix).line()
+
+
+def one_line_usage_error(exc: click.UsageError) -> click.UsageError:
+    """click's usage error as one line: click prints the usage and a hint above its `Error:` line
+    when the error has a context; the hint goes on the line instead."""
+    ctx, hint = exc.ctx, ""
+    if ctx is not None and ctx.command.get_help_option(ctx) is not None:
+        hint = f" Try '{ctx.command_path} {ctx.help_option_names[0]}' for help."
+    one = click.UsageError(" ".join(exc.format_message().split()) + hint)  # no context: just the Error line
+    one.exit_code = exc.exit_code
+    return one
 
 
 class WavelightGroup(click.Group):
     """Turns InputError and file-system failures into one `Error: ...` line and exit code 1 (no
-    traceback)."""
+    traceback); usage errors (click's, and OptionError: a bad option value or combination) into one
+    line and exit code 2."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent, **extra)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as exc:  # the group's own options
+            raise one_line_usage_error(exc) from None
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as exc:  # an unknown command, a command's options
+            raise one_line_usage_error(exc) from None
+        except OptionError as exc:
+            raise click.UsageError(exc.line()) from None
         except InputError as exc:
             raise click.ClickException(exc.line()) from None
         except (OSError, RuntimeError) as exc:

@@ -115,14 +115,16 @@ def write_display_png(path: Path, display: np.ndarray, text: dict[str, str] | No
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], oiio.UINT8)
     for key, value in (text or {}).items():
         spec.attribute(key, str(value))
+    from pipelines.io.images import write_error
+
     with atomic_output(Path(path)) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+            raise write_error(Path(path), oiio.geterror())
         ok = out.write_image(arr)
         out.close()
         if not ok:
-            raise OSError(f"cannot write {path}: {out.geterror()}")
+            raise write_error(Path(path), out.geterror())
     return Path(path)
 
 

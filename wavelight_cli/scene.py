@@ -8,7 +8,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipelines.errors import InputError, require_file
+from pipelines.errors import InputError, OptionError, require_file
 
 IMAGE_NAMES = ("image.exr", "image.hdr", "image.pfm", "image.tif", "image.tiff", "image.png",
                "image.jpg", "image.jpeg")
@@ -96,11 +96,12 @@ def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> Vie
 
 
 def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
-    """(path, `LoadedImage`) of the scene's photo, checked against the camera's size."""
+    """(path, `LoadedImage`) of the scene's photo, checked against the camera's size. NaN/Inf
+    pixels that mask.png leaves out are not refused (they read as 0)."""
     from pipelines.io import images
 
     path = scene.require_image()
-    img = images.read_image(path, linear=linear)
+    img = images.read_image(path, linear=linear, mask=scene.mask)
     if (img.width, img.height) != (camera.width, camera.height):
         raise InputError(f"image is {img.width}x{img.height} but camera.json says {camera.width}x{camera.height}",
                          path, "use the photo the camera was calibrated for, or fix camera.json")
@@ -139,6 +140,8 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
     try:
         return Material.from_json(data)
     except (ValueError, TypeError) as exc:
+        if material_file is None:  # the values are the options' (--kd, --ks, --shininess)
+            raise OptionError(str(exc), None, "fix --kd / --ks / --shininess") from None
         raise InputError(str(exc), material_file, "fix the material values") from None
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, OptionError
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "in": 0.0254}
 MIN_VIEWS = 3
@@ -18,7 +18,7 @@ def _length(text: str, option: str) -> float:
     """'20mm', '2.5cm', '0.02m', '1in' or a bare number of millimetres -> metres."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?\d+)?)\s*(mm|cm|m|in)?\s*", str(text))
     if not m or float(m[1]) <= 0:
-        raise InputError(f"{option} must be a positive length like 20mm, 2.5cm, 0.02m or 1in, got {text!r}", None,
+        raise OptionError(f"{option} must be a positive length like 20mm, 2.5cm, 0.02m or 1in, got {text!r}", None,
                          f"fix {option}")
     return float(m[1]) * UNITS[m[2] or "mm"]
 
@@ -41,18 +41,18 @@ class CalibrateOptions:
 
         m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", self.pattern_size)
         if not m:
-            raise InputError(f"--pattern-size must be COLSxROWS (e.g. 4x11), got {self.pattern_size!r}", None,
+            raise OptionError(f"--pattern-size must be COLSxROWS (e.g. 4x11), got {self.pattern_size!r}", None,
                              "give the number of dots / inner corners per row and the number of rows")
         marker = None
         if self.pattern == "charuco":
             if self.spacing is None or self.marker_size is None:
-                raise InputError("a ChArUco board needs --spacing (the square's side) and --marker-size", None,
+                raise OptionError("a ChArUco board needs --spacing (the square's side) and --marker-size", None,
                                  "give both with units, e.g. --spacing 30mm --marker-size 22mm")
             marker = _length(self.marker_size, "--marker-size")
         try:
             return Target(self.pattern, int(m[1]), int(m[2]), self.spacing_m or 1.0, marker, self.dictionary)
         except ValueError as exc:
-            raise InputError(str(exc), None, "fix --pattern / --pattern-size / --spacing / --marker-size / "
+            raise OptionError(str(exc), None, "fix --pattern / --pattern-size / --spacing / --marker-size / "
                              "--dictionary") from None
 
     @property
@@ -62,7 +62,7 @@ class CalibrateOptions:
     def check(self) -> None:
         self.target()
         if not self.outlier_factor > 1:
-            raise InputError(f"--outlier-factor must be > 1, got {self.outlier_factor}", None, "use e.g. 5")
+            raise OptionError(f"--outlier-factor must be > 1, got {self.outlier_factor}", None, "use e.g. 5")
 
 
 def calibration_warnings(result, points: list[np.ndarray], opts: CalibrateOptions) -> list[str]:

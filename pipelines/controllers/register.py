@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, OptionError
 
 
 @dataclass(frozen=True)
@@ -28,10 +28,10 @@ class RegisterOptions:
         for name in ("outlier_threshold", "max_rms"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a positive number of pixels, got {v}", None,
+                raise OptionError(f"--{name.replace('_', '-')} must be a positive number of pixels, got {v}", None,
                                  "fix the option")
         if not 0 < self.max_mesh_distance <= 1:
-            raise InputError(f"--max-mesh-distance must be in (0, 1], got {self.max_mesh_distance}", None,
+            raise OptionError(f"--max-mesh-distance must be in (0, 1], got {self.max_mesh_distance}", None,
                              "use e.g. 0.01 (1 % of the mesh's size)")
 
 

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, OptionError
 
 DEFAULT_RESOLUTION = 32  # the one default of R (every command that needs one reads it from here)
 
@@ -29,14 +29,14 @@ class VisibilityOptions:
     def check(self) -> None:
         R = self.resolution
         if R < 2 or R > 512 or (R & (R - 1)):
-            raise InputError(f"--resolution must be a power of two from 2 to 512, got {R}", None,
+            raise OptionError(f"--resolution must be a power of two from 2 to 512, got {R}", None,
                              "use e.g. --resolution 32")
         if not 1 <= self.supersample <= 8:
-            raise InputError(f"--supersample must be 1..8, got {self.supersample}", None, "use 1 (off) to 4")
+            raise OptionError(f"--supersample must be 1..8, got {self.supersample}", None, "use 1 (off) to 4")
         if not 0 <= self.edge_margin <= 32:
-            raise InputError(f"--edge-margin must be 0..32 pixels, got {self.edge_margin}", None, "use 0 to 3")
+            raise OptionError(f"--edge-margin must be 0..32 pixels, got {self.edge_margin}", None, "use 0 to 3")
         if self.method not in ("adaptive", "exact"):
-            raise InputError(f"unknown --visibility {self.method!r}", None, "use adaptive (default) or exact")
+            raise OptionError(f"unknown --visibility {self.method!r}", None, "use adaptive (default) or exact")
 
     def params(self) -> dict:
         return asdict(self)

@@ -93,8 +93,10 @@ def atomic_output(path: str | Path, now: bool = False):
         try:
             yield Path(tmp)
         except OSError as exc:  # name the file the user knows (a full disk, say), not the temp file
-            if exc.errno is not None and exc.filename in (None, tmp):
-                raise OSError(exc.errno, exc.strerror, str(path)) from exc
+            if exc.filename in (None, tmp):
+                # a library's OSError may carry no errno (nor strerror): keep what it says
+                why = exc.strerror if exc.errno is not None else exc.strerror or str(exc) or "the write failed"
+                raise OSError(exc.errno, why, str(path)) from exc
             raise
         if current is not None:
             current.pending.append((Path(tmp), path))

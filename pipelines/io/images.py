@@ -7,6 +7,7 @@ clipped (saturated) pixel, which the solvers must not fit as if exact (DESIGN §
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,9 +65,40 @@ def _open(path: Path):
     if buf.has_error:
         detail = (buf.geterror().splitlines() or ["unknown format"])[0]
         raise InputError(f"cannot read image ({detail})", path, "re-export it as EXR, PNG or JPEG")
+    _check_format_matches_name(path, buf.file_format_name)
     if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
         raise InputError("JPEG file is truncated (no end-of-image marker)", path, "copy or export the photo again")
     return buf
+
+
+_FORMAT_LABELS = {"openexr": "EXR", "jpeg2000": "JPEG 2000", "jpegxl": "JPEG XL", "pnm": "PNM/PFM"}
+
+
+@functools.cache
+def _format_extensions() -> dict[str, list[str]]:
+    """OpenImageIO's formats and their file extensions ({'openexr': ['exr', 'sxr', 'mxr'], ...})."""
+    import OpenImageIO as oiio
+
+    found = {}
+    for item in oiio.get_string_attribute("extension_list").split(";"):
+        fmt, _, exts = item.partition(":")
+        found[fmt] = [e.lower() for e in exts.split(",") if e]
+    return found
+
+
+def _check_format_matches_name(path: Path, fmt: str) -> None:
+    """Refuse a file whose content is another format than its name says (a JPEG renamed .exr
+    would be read as 8-bit sRGB where the name promises linear radiance)."""
+    suffix = path.suffix.lower().lstrip(".")
+    formats = _format_extensions()
+    named = [f for f, exts in formats.items() if suffix in exts]
+    if not fmt or not named or fmt in named:
+        return
+    label = _FORMAT_LABELS.get(fmt, fmt.upper())
+    expected = _FORMAT_LABELS.get(named[0], named[0].upper())
+    ext = (formats.get(fmt) or [fmt])[0]
+    raise InputError(f"the file holds {label} data, not {expected} as its name (.{suffix}) says", path,
+                     f"rename it to {path.stem}.{ext}, or convert it to {expected}")
 
 
 def _jpeg_complete(path: Path) -> bool:
@@ -96,18 +128,21 @@ def _pixels(buf, path: Path, fmt) -> np.ndarray:
     return px if fmt != oiio.FLOAT else px.astype(np.float32, copy=False)
 
 
-def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
+def read_image(path: str | Path, linear: bool | None = None, mask: str | Path | None = None) -> LoadedImage:
     """Read a photo as linear RGB radiance.
 
     Parameters
     ----------
     path : image file (EXR/HDR/PFM/TIFF/PNG/JPEG, anything OpenImageIO reads).
     linear : treat integer formats as linear (default: sRGB-decode them). Ignored for float files.
+    mask : the photo's mask.png (white = used), read only if the photo has non-finite pixels:
+        NaN/Inf pixels the mask leaves out are not refused (they become 0).
 
     Raises
     ------
     InputError
-        Missing, unreadable or truncated file; non-finite or negative pixels; wrong channel count.
+        Missing, unreadable or truncated file; non-finite pixels that are used (no mask, or inside
+        it); a mask of another size; wrong channel count.
     """
     import OpenImageIO as oiio
 
@@ -131,10 +166,10 @@ def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
     if px.shape[2] == 1:
         px = np.repeat(px, 3, axis=2)
     if is_float:
-        if not np.all(np.isfinite(px)):
-            n_bad = int(np.count_nonzero(~np.isfinite(px).all(axis=2)))
-            raise InputError(f"{n_bad} pixels are NaN or infinite", path,
-                             "fix the render/merge that produced it, or mask those pixels out")
+        bad = ~np.isfinite(px).all(axis=2)
+        if bad.any():
+            _check_nonfinite(path, bad, mask)
+            px[bad] = 0.0  # left out by the mask: never used
         if np.any(px < 0):
             px = np.clip(px, 0.0, None)  # small negatives come from denoisers/subtraction
         saturated = np.zeros(px.shape[:2], dtype=bool)
@@ -149,6 +184,24 @@ def read_image(path: str | Path, linear: bool | None = None) -> LoadedImage:
         depth = str(8 * px.dtype.itemsize)
     return LoadedImage(pixels=np.ascontiguousarray(pixels), saturated=saturated,
                        linear_source=linear_source, bit_depth=depth)
+
+
+def _check_nonfinite(path: Path, bad: np.ndarray, mask: str | Path | None) -> None:
+    """Refuse the photo's NaN/Inf pixels (`bad`, (H, W)) unless the mask leaves every one out."""
+    if mask is None:
+        raise InputError(f"{int(bad.sum())} pixels are NaN or infinite", path,
+                         "fix the render or merge that produced them, or leave them out with a mask.png "
+                         "(black = not used)")
+    used = read_mask(mask)
+    if used.shape != bad.shape:
+        raise InputError(f"mask is {used.shape[1]}x{used.shape[0]}, the photo {path.name} is "
+                         f"{bad.shape[1]}x{bad.shape[0]}", mask, "use a mask of the photo's size")
+    inside = bad & used
+    if inside.any():
+        r, c = np.argwhere(inside)[0]
+        raise InputError(f"{int(inside.sum())} pixels inside {Path(mask).name} are NaN or infinite (the first at "
+                         f"row {r}, column {c})", path,
+                         f"fix the render or merge that produced them, or paint them black in {Path(mask).name}")
 
 
 def read_grey8(path: str | Path) -> np.ndarray:
@@ -207,15 +260,15 @@ def _write(path: str | Path, array: np.ndarray, fmt) -> Path:
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise _write_error(path, oiio.geterror())
+            raise write_error(path, oiio.geterror())
         ok = out.write_image(arr)
         out.close()
         if not ok:
-            raise _write_error(path, out.geterror())
+            raise write_error(path, out.geterror())
     return path
 
 
-def _write_error(path: Path, detail: str) -> OSError:
+def write_error(path: Path, detail: str) -> OSError:
     """OpenImageIO reports a failed write as text: an OSError that says why (with its errno when the
     cause is known: a full disk, a missing permission), naming the final file."""
     import errno

@@ -100,28 +100,47 @@ def read_pose(path: str | Path) -> Pose:
     return Pose(u @ vt, t, extra={k: v for k, v in data.items() if k not in known})
 
 
+CSV_HEADER = ["u", "v", "x", "y", "z"]
+
+
+def _csv_text(path: Path) -> str:
+    """The file's text: UTF-8 with or without a byte-order mark (what spreadsheets save), or
+    UTF-16 with one (Excel's "Unicode text")."""
+    raw = path.read_bytes()
+    return raw.decode("utf-16") if raw.startswith((b"\xff\xfe", b"\xfe\xff")) else raw.decode("utf-8-sig")
+
+
 def read_correspondences(path: str | Path, min_points: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Read `u,v,x,y,z` rows -> (uv (n, 2), xyz (n, 3)) float64."""
+    """Read `u,v,x,y,z` rows -> (uv (n, 2), xyz (n, 3)) float64.
+
+    As spreadsheets save it too: a byte-order mark, CRLF line ends, blank lines, and `;` (with
+    decimal commas) or tab separators, which the header line tells."""
     path = Path(path)
     require_file(path, "create correspondences.csv with header u,v,x,y,z")
     try:
-        rows = list(csv.reader(path.read_text().splitlines()))
+        lines = _csv_text(path).splitlines()
+        first = next((ln for ln in lines if ln.strip(" \t,;")), "")
+        delimiter = next((d for d in (",", ";", "\t")
+                          if [c.strip().lower() for c in next(csv.reader([first], delimiter=d), [])] == CSV_HEADER),
+                         ",")
+        reader = csv.reader(lines, delimiter=delimiter)
+        # (file line number, cells) of the rows that are not blank
+        rows = [(reader.line_num, r) for r in reader if r and any(c.strip() for c in r)]
     except (UnicodeDecodeError, csv.Error) as exc:  # csv.Error: e.g. an unclosed quote swallowing the file
         what = "not a text CSV file" if isinstance(exc, UnicodeDecodeError) else f"not valid CSV ({exc})"
         raise InputError(what, path, "save it as plain CSV with header u,v,x,y,z") from None
     except OSError as exc:
         raise InputError(f"cannot read it ({exc.strerror})", path, "check its permissions") from None
-    rows = [r for r in rows if r and any(c.strip() for c in r)]
-    header = [c.strip().lower() for c in rows[0]] if rows else []
-    if header != ["u", "v", "x", "y", "z"]:
+    header = [c.strip().lower() for c in rows[0][1]] if rows else []
+    if header != CSV_HEADER:
         raise InputError(f"header must be 'u,v,x,y,z', got {','.join(header) or 'nothing'!r}", path,
                          "fix the first line")
     values = []
-    for lineno, row in enumerate(rows[1:], start=2):
+    for lineno, row in rows[1:]:
         if len(row) != 5:
             raise InputError(f"line {lineno} has {len(row)} cells, expected 5", path, "fix that line")
         try:
-            vals = [float(c) for c in row]
+            vals = [float(c.replace(",", ".") if delimiter == ";" else c) for c in row]
         except ValueError:
             raise InputError(f"line {lineno} has a non-numeric cell", path, "fix that line") from None
         if not all(math.isfinite(v) for v in vals):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipelines.errors import InputError
+from pipelines.errors import OptionError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
@@ -23,11 +23,11 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
     from pipelines.light import cubemap
 
     if height is not None and not 8 <= height <= 8192:
-        raise InputError(f"--height must be 8..8192 rows, got {height}", None, "e.g. --height 256")
+        raise OptionError(f"--height must be 8..8192 rows, got {height}", None, "e.g. --height 256")
     if face_size is not None and (face_size < 2 or face_size > 4096 or face_size & (face_size - 1)):
-        raise InputError(f"--face-size must be a power of two from 2 to 4096, got {face_size}", None, "e.g. 64")
+        raise OptionError(f"--face-size must be a power of two from 2 to 4096, got {face_size}", None, "e.g. 64")
     if light_path is not None and height is not None:
-        raise InputError("--height applies to the recovered light; a --light file keeps its own rows", None,
+        raise OptionError("--height applies to the recovered light; a --light file keeps its own rows", None,
                          "drop --height (or resample the file)")
     source = light_path if light_path is not None else scene.out / "coefficients.h5"
     require(source, "run wavelight solve first, or pass --light")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.controllers.visibility import DEFAULT_RESOLUTION, VisibilityOptions
-from pipelines.errors import InputError
+from pipelines.errors import InputError, OptionError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
@@ -37,15 +37,15 @@ class InsertOptions:
 
     def check(self) -> None:
         if not all(np.isfinite(self.at)):
-            raise InputError("--at must be three finite numbers (world x y z)", None, "fix --at")
+            raise OptionError("--at must be three finite numbers (world x y z)", None, "fix --at")
         if not (np.isfinite(self.scale) and self.scale > 0):
-            raise InputError(f"--scale must be positive, got {self.scale}", None, "fix --scale")
+            raise OptionError(f"--scale must be positive, got {self.scale}", None, "fix --scale")
         if self.radius is not None and not (np.isfinite(self.radius) and self.radius > 0):
-            raise InputError(f"--radius must be positive, got {self.radius}", None, "fix --radius")
+            raise OptionError(f"--radius must be positive, got {self.radius}", None, "fix --radius")
         if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
-            raise InputError(f"--name must be letters, digits, - or _, got {self.name!r}", None, "e.g. --name ball")
+            raise OptionError(f"--name must be letters, digits, - or _, got {self.name!r}", None, "e.g. --name ball")
         if not 1 <= self.supersample <= 8:
-            raise InputError(f"--supersample must be 1..8, got {self.supersample}", None, "use 1 to 4")
+            raise OptionError(f"--supersample must be 1..8, got {self.supersample}", None, "use 1 to 4")
 
 
 def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path, console: Console,

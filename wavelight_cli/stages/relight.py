@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.controllers.visibility import VisibilityOptions
-from pipelines.errors import InputError
+from pipelines.errors import InputError, OptionError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
@@ -35,11 +35,11 @@ class RelightOptions:
 
     def check(self) -> None:
         if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
-            raise InputError(f"--name must be letters, digits, - or _, got {self.name!r}", None, "e.g. --name sunset")
+            raise OptionError(f"--name must be letters, digits, - or _, got {self.name!r}", None, "e.g. --name sunset")
         if not np.isfinite(self.rotate) or not np.isfinite(self.light_exposure):
-            raise InputError("--rotate and --light-exposure must be finite numbers", None, "fix the option")
+            raise OptionError("--rotate and --light-exposure must be finite numbers", None, "fix the option")
         if self.view_camera is not None and self.view_pose is None:
-            raise InputError("--view-camera needs --view (the new view's pose.json)", None, "add --view POSE.json")
+            raise OptionError("--view-camera needs --view (the new view's pose.json)", None, "add --view POSE.json")
 
 
 def _light(scene: SceneFiles, opts: RelightOptions, cube):
@@ -81,7 +81,7 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
         reference = scene.image  # the photo's own view and light: how well the model explains the photo
     mask_path = opts.reference_mask
     if mask_path is not None and reference is None:
-        raise InputError("--reference-mask needs a reference (the photo is one only for its own view and light)",
+        raise OptionError("--reference-mask needs a reference (the photo is one only for its own view and light)",
                          None, "add --reference IMAGE")
     cache = SceneCache(scene.root)
     name = "relight" if opts.name == "relight" else f"relight-{opts.name}"

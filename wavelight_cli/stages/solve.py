@@ -16,6 +16,7 @@ import numpy as np
 
 from pipelines.controllers.solve import ReflectanceOptions, SolveOptions, material_text
 from pipelines.controllers.visibility import VisibilityOptions
+from pipelines.errors import option_errors
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
@@ -53,7 +54,8 @@ def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
     if opts.exact:
         vis_opts = replace(vis_opts, method="exact")
     vis_opts.check()
-    opts.check(vis_opts.resolution, vis_opts.hemisphere)
+    with option_errors():  # the light and solve options' checks look at the options only
+        opts.check(vis_opts.resolution, vis_opts.hemisphere)
     camera = read_camera(scene.camera)
     photo_path, photo = load_photo(scene, camera, True if opts.linear_input else None)
     return vis_opts, camera, photo_path, photo
@@ -71,10 +73,12 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines.model import render as rd
 
     given = given or set()
-    refl.check()
+    with option_errors():  # --reflectance and the fit's start (--shininess)
+        refl.check()
+        start = refl.start(material, given) if refl.fits else None
     params = {**opts.cache_params(), "reflectance": refl.cache_params(), "material": material.to_json()}
-    if refl.fits:
-        params["start"] = refl.start(material, given).to_json()
+    if start is not None:
+        params["start"] = start.to_json()
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
     cache = SceneCache(scene.root)
     out = scene.out
