@@ -1,15 +1,19 @@
 """Ray casting against the scene mesh: Embree (through embreex) and a slow reference backend.
 
-Both backends share one API (`intersect`, `occluded`, `first_hits`) and the same precision policy:
+Both backends share one API (`intersect`, `occluded`, `first_hits`, `shadow_origins`) and the same
+precision policy:
 - the mesh is recentred on its bounding-box centre before it is handed to the ray caster, so
   float32 keeps its precision for meshes far from the origin (e.g. survey coordinates);
 - the kernel (float32) only chooses the face a camera ray hits; `first_hits` then locates the hit
   in float64 on that face (the float64 ray meets the face's plane, barycentrics clamped into the
   triangle). Embree's float32 distance t is off by ~eps32 x the camera's distance from the mesh,
   which with a long lens far away (D = 700 radii of a ball) put hit points below their facet;
-- shadow rays start at the surface point pushed along the geometric normal by
-  `offset = 1e-5 x scene size` (towards the side the ray leaves on), which clears float32
-  self-intersection without letting light leak through contact points.
+- shadow rays start at the surface point pushed along the geometric normal (towards the side the
+  ray leaves on) by `shadow_origins`, the one place shadow-ray origins are made:
+  offset = OFFSET_ULPS x eps32 x (max |p| in the recentred frame + the hit triangle's longest edge),
+  added in float64 before the origin is rounded to float32. It exceeds the float32 rounding of the
+  origin and of the triangle's vertices at any camera distance and scene scale, and is small
+  (at most ~2e-6 x the scene's size for small triangles) so light does not leak through contacts.
 
 `make_backend(name)` is the one place a backend is chosen.
 """
@@ -17,13 +21,14 @@ Both backends share one API (`intersect`, `occluded`, `first_hits`) and the same
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from functools import cached_property
 
 import numpy as np
 
 from .mesh import Mesh
 
 EPS32 = float(np.finfo(np.float32).eps)  # 2^-23
-RAY_OFFSET = 1e-5  # x scene size
+OFFSET_ULPS = 32.0  # shadow-ray offset in float32 ulps of the coordinates where the ray starts
 RESTART_ULPS = 64.0  # the second first-hit query starts this many float32 ulps (of the first one's reach) short
 MISS = -1
 LOCATE_BLOCK = 1 << 18  # hits located per block by `first_hits` (bounds its float64 scratch)
@@ -38,13 +43,35 @@ class _Backend:
         self.mesh = mesh
         self.centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
         self.scale = mesh.scale
-        self.offset = RAY_OFFSET * self.scale
         self.threads = max(1, int(threads))
         self.triangles = (mesh.vertices - self.centre)[mesh.faces].astype(np.float32)  # (F, 3, 3)
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """World points -> float32 points in the recentred frame the kernel works in."""
         return (np.asarray(points, dtype=np.float64) - self.centre).astype(np.float32)
+
+    @cached_property
+    def longest_edges(self) -> np.ndarray:
+        """(F,) float64 length of each face's longest edge."""
+        v = self.mesh.vertices[self.mesh.faces]
+        return np.sqrt(np.max(np.stack([np.sum((v[:, 1] - v[:, 0]) ** 2, axis=1), np.sum((v[:, 2] - v[:, 1]) ** 2, axis=1),
+                                        np.sum((v[:, 0] - v[:, 2]) ** 2, axis=1)]), axis=0))
+
+    def shadow_origins(self, positions: np.ndarray, geometric_normals: np.ndarray, faces: np.ndarray,
+                       local: bool = True) -> np.ndarray:
+        """Where shadow rays from surface points start: each point pushed along its (unit) geometric
+        normal by OFFSET_ULPS x eps32 x (max |p| in the recentred frame + its face's longest edge),
+        in float64, so that the origin after its rounding to float32 is still above the float32
+        triangle (both are off by ~eps32 x their coordinates). The one definition of the offset.
+
+        positions : (n, 3) world points on faces `faces` (n,); geometric_normals : (n, 3), on the side
+        the rays leave on. Returns (n, 3) float32 in the recentred frame (for `occluded_local`), or
+        with `local=False` float64 world points (for `occluded`, e.g. of another backend).
+        """
+        p = np.asarray(positions, np.float64) - self.centre
+        offset = OFFSET_ULPS * EPS32 * (np.abs(p).max(axis=1, initial=0.0) + self.longest_edges[np.asarray(faces)])
+        o = p + offset[:, None] * np.asarray(geometric_normals, np.float64)
+        return o.astype(np.float32) if local else o + self.centre
 
     def first_hits(self, origins: np.ndarray, directions: np.ndarray):
         """First hits of world rays located in float64: (t (n,), face (n,) with -1 for a miss,
