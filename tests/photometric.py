@@ -273,6 +273,29 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
+LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
+
+
+def region_centroid(radiance: np.ndarray, directions: np.ndarray, solid_angles: np.ndarray,
+                    threshold: float = 0.5, radius_deg: float = 30.0) -> np.ndarray:
+    """Power-weighted mean direction of a light's brightest region: the samples (texels or lat-long
+    pixels: (n, 3) radiance, unit directions, solid angles) with luminance >= threshold x the peak's
+    and within radius_deg of the peak's direction."""
+    lum = radiance @ LUMA
+    peak = int(np.argmax(lum))
+    near = angle_deg(directions, directions[peak][None]) <= radius_deg
+    sel = near & (lum >= threshold * lum[peak])
+    v = ((lum * solid_angles)[sel, None] * directions[sel]).sum(axis=0)
+    return v / np.linalg.norm(v)
+
+
+def power_direction(radiance: np.ndarray, directions: np.ndarray, solid_angles: np.ndarray) -> np.ndarray:
+    """Direction of a light's whole power vector (sum of luminance x solid angle x direction)."""
+    v = ((radiance @ LUMA) * solid_angles)[:, None] * directions
+    v = v.sum(axis=0)
+    return v / np.linalg.norm(v)
+
+
 def scene_samples(scene: Path, edge_margin: int = 1):
     """wavelight's used pixels of a built scene (`pipelines.camera.pixel_samples`) and diagnostics."""
     from pipelines.geometry import camera as cam

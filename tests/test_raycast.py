@@ -9,7 +9,7 @@ import pytest
 
 from pipelines.geometry.camera import PixelSamples, pixel_rays, pixel_samples
 from pipelines.light.cubemap import CubeMap
-from pipelines.geometry.raycast import MISS, RAY_OFFSET, make_backend
+from pipelines.geometry.raycast import MISS, make_backend
 from pipelines.geometry.camera import Camera, Pose
 from pipelines.geometry.mesh import Mesh
 from pipelines.geometry.visibility import compute_visibility, decode
@@ -215,8 +215,16 @@ def test_miss_distance_is_infinite(backends, name):
 @pytest.mark.parametrize("name", BACKENDS)
 def test_point_under_the_box_is_shadowed_at_zenith_not_at_horizon(backends, name):
     be = backends[name]
-    assert be.offset == pytest.approx(RAY_OFFSET * be.mesh.scale)
-    p = np.array([0.0, 0.0, be.offset])
+    t, face, _, point = be.first_hits(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0]]))  # from below
+    assert 0 <= face[0] < N_GROUND_FACES and t[0] == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(point[0], 0.0, atol=1e-12)
+    up = np.array([[0.0, 0.0, 1.0]])
+    p = be.shadow_origins(point, up, face, local=False)[0]
+    # the offset: 32 float32 ulps of (max |p| in the recentred frame + the ground cell's diagonal)
+    centre_z = 0.5 * be.mesh.vertices[:, 2].max()
+    edge = np.hypot(4.0 / GROUND_N, 4.0 / GROUND_N)
+    np.testing.assert_allclose(p[:2], 0.0, atol=1e-12)
+    assert p[2] == pytest.approx(32 * np.finfo(np.float32).eps * (centre_z + edge), rel=1e-6)
     dirs = np.array([[0.0, 0.0, 1.0], [0.3, -0.2, 1.0], [1.0, 0.0, 0.1], [-1.0, 0.3, 0.05],
                      [0.0, 1.0, 0.9], [0.0, -1.0, 0.2], [0.7, 0.7, 0.95]])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)

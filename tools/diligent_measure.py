@@ -2,7 +2,7 @@
 
 Usage:
     .venv/bin/python tools/diligent_measure.py OUTDIR [--photos 0 1 2 ...] [--solve-args "-R 16"]
-        [--no-run] [--patch-hits]
+        [--no-run]
 
 Per photo: builds OUTDIR/pNN (if missing), runs `wavelight -s OUTDIR/pNN solve SOLVE_ARGS` (unless
 --no-run; wavelight's cache skips a finished solve), then reads the results and prints one table row:
@@ -12,9 +12,9 @@ Per photo: builds OUTDIR/pNN (if missing), runs `wavelight -s OUTDIR/pNN solve S
   - the angle to the direction of the light's whole power vector (sum of power x direction: what a
     Lambertian convex object determines best),
   - the relit error (solve_report.json), what `--reflectance auto` chose (out/reflectance.json),
-  - the used pixels whose visibility is zero toward every texel (.wavelight/visibility.h5).
-Writes OUTDIR/summary.json and OUTDIR/summary.md. --patch-hits runs wavelight in-process with the
-hit-point / shadow-offset fix of tools/diligent_self_shadow.py monkeypatched in (no change to pipelines/).
+  - the used pixels whose visibility is zero toward every texel (.wavelight/visibility/photo-R<R>.h5).
+Writes OUTDIR/summary.json and OUTDIR/summary.md. (The hit-point / shadow-offset fix that
+--patch-hits used to monkeypatch in is now in pipelines/geometry/raycast.py.)
 """
 
 from __future__ import annotations
@@ -35,25 +35,8 @@ sys.path.insert(0, str(REPO / "tools"))
 
 import photometric as ph  # noqa: E402
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
-def region_centroid(radiance: np.ndarray, directions: np.ndarray, solid_angles: np.ndarray,
-                    threshold: float = 0.5, radius_deg: float = 30.0) -> np.ndarray:
-    """Power-weighted mean direction of the brightest region: samples with luminance >= threshold x
-    the peak and within radius_deg of the peak's direction."""
-    lum = radiance @ LUMA
-    peak = int(np.argmax(lum))
-    near = ph.angle_deg(directions, directions[peak][None]) <= radius_deg
-    sel = near & (lum >= threshold * lum[peak])
-    v = ((lum * solid_angles)[sel, None] * directions[sel]).sum(axis=0)
-    return v / np.linalg.norm(v)
-
-
-def power_direction(radiance: np.ndarray, directions: np.ndarray, solid_angles: np.ndarray) -> np.ndarray:
-    v = ((radiance @ LUMA) * solid_angles)[:, None] * directions
-    v = v.sum(axis=0)
-    return v / np.linalg.norm(v)
+region_centroid = ph.region_centroid  # the measures the tests use (tests/photometric.py)
+power_direction = ph.power_direction
 
 
 def latlong_samples(latlong: np.ndarray):
@@ -68,10 +51,10 @@ def latlong_samples(latlong: np.ndarray):
     return latlong.reshape(-1, 3), d, np.asarray(latlong_solid_angles(H, W)).reshape(-1)
 
 
-def all_shadowed(scene: Path) -> tuple[int, int]:
+def all_shadowed(scene: Path, resolution: int) -> tuple[int, int]:
     from pipelines.io import visibility_file as vis
 
-    data = vis.read_visibility(scene / ".wavelight" / "visibility.h5")
+    data = vis.read_visibility(scene / ".wavelight" / "visibility" / f"photo-R{resolution}.h5")
     zero = 0
     for _, block in data.blocks():
         zero += int(np.count_nonzero(block.sum(axis=1) == 0))
@@ -88,7 +71,7 @@ def measure(scene: Path, led: np.ndarray) -> dict:
     ll = images.read_latlong(scene / "out" / "light_latlong.exr")
     rad, d, sa = latlong_samples(ll)
     brightest = np.asarray(report["brightest_direction"]["direction"])
-    zero, n = all_shadowed(scene)
+    zero, n = all_shadowed(scene, cube.resolution)
     return {
         "scene": scene.name,
         "resolution": cube.resolution,
@@ -107,13 +90,9 @@ def measure(scene: Path, led: np.ndarray) -> dict:
     }
 
 
-def run_solve(scene: Path, args: list[str], patch: bool) -> float:
+def run_solve(scene: Path, args: list[str]) -> float:
     t0 = time.monotonic()
-    if patch:
-        cmd = [sys.executable, str(REPO / "tools" / "diligent_self_shadow.py"), "patched-cli", "-s", str(scene),
-               "solve", *args]
-    else:
-        cmd = [str(Path(sys.executable).parent / "wavelight"), "-s", str(scene), "solve", *args]
+    cmd = [str(Path(sys.executable).parent / "wavelight"), "-s", str(scene), "solve", *args]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"{scene}: solve failed\n{done.stderr[-2000:]}")
@@ -127,7 +106,6 @@ def main(argv=None):
     ap.add_argument("--photos", type=int, nargs="*", default=list(range(16)))
     ap.add_argument("--solve-args", default="")
     ap.add_argument("--no-run", action="store_true")
-    ap.add_argument("--patch-hits", action="store_true")
     a = ap.parse_args(argv)
     view = ph.ball_view()
     leds = ph.light_directions()
@@ -136,7 +114,7 @@ def main(argv=None):
         scene = a.outdir / f"p{k:02d}"
         if not (scene / "pose.json").exists():
             ph.build_ball_scene(scene, k, view=view)
-        wall = None if a.no_run else run_solve(scene, shlex.split(a.solve_args), a.patch_hits)
+        wall = None if a.no_run else run_solve(scene, shlex.split(a.solve_args))
         row = {"photo": ph.filenames()[k], **measure(scene, leds[k]), "wall_seconds": wall}
         rows.append(row)
         print(f"{row['photo']}: brightest {row['err_brightest_deg']:.1f} deg, region {row['err_latlong_region_deg']:.1f}"

@@ -132,20 +132,21 @@ def _edges(hit: np.ndarray, depth: np.ndarray, face_normal_dot: np.ndarray, tole
 
 
 def _cast(camera: Camera, pose: Pose, mesh: Mesh, backend):
-    """One ray per pixel centre: rows, cols, origins, directions, hit distance, face, barycentrics,
-    the (H, W) hit mask and the (H, W) silhouette / depth-jump edges."""
+    """One ray per pixel centre: rows, cols, origins, directions, hit distance, face, barycentrics
+    (n, 3), hit points (n, 3) (float64 on the hit face: `first_hits`), the (H, W) hit mask and the
+    (H, W) silhouette / depth-jump edges."""
     H, W = camera.height, camera.width
     rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
     rows, cols = rows.ravel(), cols.ravel()
     o, d = pixel_rays(camera, pose, rows, cols)
-    t, face, bu, bv = backend.intersect(o, d)
+    t, face, bary, points = backend.first_hits(o, d)
     hit = (face >= 0).reshape(H, W)
     depth = np.where(hit.ravel(), t, np.inf).reshape(H, W)
     ng = mesh.face_normals[np.where(face >= 0, face, 0)]
     cos_view = np.abs(np.einsum("ij,ij->i", ng, -d)).reshape(H, W)
     pixel_angle = 1.0 / max(camera.fx, camera.fy)
     edge = _edges(hit, depth, cos_view, tolerance=4.0 * pixel_angle)
-    return rows, cols, o, d, t, face, bu, bv, hit, edge
+    return rows, cols, o, d, t, face, bary, points, hit, edge
 
 
 def mesh_outline(camera: Camera, pose: Pose, mesh: Mesh, backend) -> np.ndarray:
@@ -170,7 +171,7 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
     if np.all(z_cam <= 0):
         raise InputError("the pose puts the whole mesh behind the camera", None,
                          "check pose.json (world->camera, x_cam = R X + t) or rerun wavelight register")
-    rows, cols, o, d, t, face, bu, bv, hit, edge = _cast(camera, pose, mesh, backend)
+    rows, cols, o, d, t, face, bary, points, hit, edge = _cast(camera, pose, mesh, backend)
     if not hit.any():
         raise InputError("no pixel of the image sees the mesh", None,
                          "check pose.json and camera.json (does the mesh project into the image?)")
@@ -188,12 +189,10 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
                          "check mask.png (white = use) and the pose")
     sel = np.flatnonzero(used.ravel())
     f = face[sel]
-    w1, w2 = bu[sel], bv[sel]
-    w0 = 1.0 - w1 - w2
+    w = bary[sel]
     tri = mesh.faces[f]
-    position = o[sel] + t[sel, None] * d[sel]
-    normal = (w0[:, None] * mesh.vertex_normals[tri[:, 0]] + w1[:, None] * mesh.vertex_normals[tri[:, 1]]
-              + w2[:, None] * mesh.vertex_normals[tri[:, 2]])
+    position = points[sel]
+    normal = np.einsum("ik,ikj->ij", w, mesh.vertex_normals[tri])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
     view = -d[sel]
     geo = fn[f]

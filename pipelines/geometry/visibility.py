@@ -83,11 +83,10 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice | np.ndarray, cu
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    pos = backend.to_local(samples.position[rows])
+    origins = backend.shadow_origins(samples.position[rows], samples.geometric_normal[rows], samples.face[rows])
     geo = samples.geometric_normal[rows].astype(np.float32)
     dirs = cube.directions.astype(np.float32)
     mask = castable(samples.normal[rows], geo, dirs)  # (p, N)
-    origins = pos + np.float32(backend.offset) * geo  # off the surface, on the lit side
     if supersample == 1:
         table, tfar = dirs, np.where(mask, np.float32(np.inf), np.float32(-1.0))
     else:
@@ -95,8 +94,8 @@ def visibility_rows(backend, samples: PixelSamples, rows: slice | np.ndarray, cu
         # a sub-direction behind the facet is blocked by the facet itself
         live = (np.einsum("pk,nsk->pns", geo, sub) > 0) & mask[:, :, None]
         table = sub.reshape(-1, 3)
-        tfar = np.where(live, np.float32(np.inf), np.float32(-1.0)).reshape(len(pos), -1)
-    n = len(pos)
+        tfar = np.where(live, np.float32(np.inf), np.float32(-1.0)).reshape(len(origins), -1)
+    n = len(origins)
     bounds = np.linspace(0, n, min(backend.threads, max(1, n)) + 1).astype(int)
     parts = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     if len(parts) == 1:
@@ -304,7 +303,7 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
     index = np.full((H + 2 * spacing, W + 2 * spacing), -1, np.int64)  # padded: neighbours off the image are absent
     index[pix[:, 0] + spacing, pix[:, 1] + spacing] = np.arange(P)
     geo = samples.geometric_normal.astype(np.float32)
-    origins = backend.to_local(samples.position) + np.float32(backend.offset) * geo
+    origins = backend.shadow_origins(samples.position, samples.geometric_normal, samples.face)
     dirs = cube.directions.astype(np.float32)
     # castable entries, bit-packed (the stored rows hold V = 0 where a texel is not castable)
     can = castable_bits(samples.normal, geo, dirs)
@@ -421,7 +420,7 @@ def recast_columns(backend, samples: PixelSamples, cube: CubeMap, stored: np.nda
     if len(texels) == 0:
         return out
     geo = samples.geometric_normal.astype(np.float32)
-    origins = backend.to_local(samples.position) + np.float32(backend.offset) * geo
+    origins = backend.shadow_origins(samples.position, samples.geometric_normal, samples.face)
     can = castable(samples.normal, geo, cube.directions[texels])  # (P, t)
     for k, t in enumerate(texels):
         rows = np.flatnonzero(can[:, k])

@@ -53,9 +53,9 @@ def insert(camera: Camera, pose: Pose, scene_mesh: Mesh, obj: Mesh, light: np.nd
     scene_rows = np.flatnonzero(~on_object)
     scene_samples = _subset_samples(samples, scene_rows)
     if supersample == 1:
-        without_stored = _scene_visibility(scene_samples, scene_vis, cube, make_backend(scene_mesh), progress)
-        with_stored = _minus_object(without_stored, scene_samples, cube, obj, make_backend(obj),
-                                    make_backend(scene_mesh).offset)
+        backend_scene = make_backend(scene_mesh)
+        without_stored = _scene_visibility(scene_samples, scene_vis, cube, backend_scene, progress)
+        with_stored = _minus_object(without_stored, scene_samples, cube, obj, make_backend(obj), backend_scene)
         obj_rows = np.flatnonzero(on_object)
         obj_stored = compute_visibility(backend_both, _subset_samples(samples, obj_rows), cube).stored
     else:  # fractional visibility: cast everything, with and without the object
@@ -119,15 +119,17 @@ def _scene_visibility(samples, scene_vis, cube: CubeMap, backend, progress=None)
     return out
 
 
-def _minus_object(stored: np.ndarray, samples, cube: CubeMap, obj: Mesh, obj_backend, offset: float) -> np.ndarray:
+def _minus_object(stored: np.ndarray, samples, cube: CubeMap, obj: Mesh, obj_backend, scene_backend) -> np.ndarray:
     """The visibility with `obj` added: the lit bits whose rays hit it cleared. Only directions
-    inside the cone of the object's bounding sphere (widened by a texel) are cast against it."""
+    inside the cone of the object's bounding sphere (widened by a texel) are cast against it, from
+    the origins the scene's own shadow rays start at (`scene_backend.shadow_origins`; `samples`
+    are on the scene mesh)."""
     lo, hi = obj.vertices.min(axis=0), obj.vertices.max(axis=0)
     centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
     dirs = cube.directions
     half_texel = np.pi / (2 * cube.resolution) * np.sqrt(2.0)
     out = stored.copy()
-    origins = samples.position + offset * samples.geometric_normal
+    origins = scene_backend.shadow_origins(samples.position, samples.geometric_normal, samples.face, local=False)
     for a in range(0, len(samples), 2048):
         sl = slice(a, min(len(samples), a + 2048))
         axis = centre[None, :] - origins[sl]
