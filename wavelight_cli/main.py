@@ -159,7 +159,8 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
 
 force_option = click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 exposure_option = click.option("--exposure", type=float, default=None,
-                               help="PNG exposure in stops (default: automatic).")
+                               help="PNG exposure in stops [default: the photo's, its 99.5th-percentile "
+                                    "radiance white: a darker light looks darker]. Only redraws the PNG.")
 
 
 def visibility_options(f):

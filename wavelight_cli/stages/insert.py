@@ -13,7 +13,7 @@ from pipelines.errors import InputError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import heat_map, write_json
+from ..outputs import heat_map, photo_exposure, write_json
 from ..scene import SceneFiles, load_photo, material_from_options, require, solved_light
 from .visibility import visibility_stage
 
@@ -32,7 +32,7 @@ class InsertOptions:
     light: Path | None = None
     resolution: int | None = None
     supersample: int = 1
-    exposure: float | None = None
+    exposure: float | None = None  # PNG exposure in stops (None: the photo's, `outputs.photo_exposure`)
     name: str = "insert"
 
     def check(self) -> None:
@@ -74,6 +74,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     else:
         _, solved_cube, _ = solved_light(scene)
         resolution = opts.resolution or solved_cube.resolution
+    png_exposure = opts.exposure if opts.exposure is not None else photo_exposure(photo.pixels)
     cache = SceneCache(scene.root)
     name = "insert" if opts.name == "insert" else f"insert-{opts.name}"
     out = scene.out
@@ -118,7 +119,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
                 raise InputError(f"the object at {tuple(opts.at)} is not in the photo", None,
                                  "place it where the camera sees it (--at, world coordinates)")
             outputs = [images.write_exr(out / f"{opts.name}.exr", r.composite),
-                       images.write_png(out / f"{opts.name}.png", r.composite, opts.exposure),
+                       images.write_png(out / f"{opts.name}.png", r.composite, png_exposure),
                        images.write_exr(out / f"{opts.name}_render.exr", r.with_object),
                        images.write_png(out / f"{opts.name}_shadow.png", heat_map(np.clip(-r.shadow, 0, None), 0.5),
                                         already_display=True)]
@@ -133,7 +134,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
 
         def redisplay() -> list:
             img = images.read_image(out / f"{opts.name}.exr").pixels
-            return [images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+            return [images.write_png(out / f"{opts.name}.png", img, png_exposure)]
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of(name) or {}

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipelines.io.files import atomic_output
 
-from ..outputs import heat_colours, log_colours, log_display, log_range, read_png_text
+from ..outputs import heat_colours, log_colours, log_display, log_range, photo_exposure, read_png_text, read_rgba
 
 DEAD = (1.0, 1.0, 1.0)  # figure pixels that hold no texel
 OUTLINE = (0.1, 0.9, 0.3)  # the tree's leaf boundaries
@@ -76,12 +76,6 @@ def _read_display(path: Path) -> np.ndarray | None:
     from pipelines.io import images
 
     return images.read_image(path, linear=True).pixels if path.is_file() else None
-
-
-def _read_linear(path: Path) -> np.ndarray | None:
-    from pipelines.io import images
-
-    return images.read_image(path).pixels if path.is_file() else None
 
 
 def heat_scale(path: Path, default: float | None = None) -> tuple[float | None, str, str]:
@@ -145,20 +139,22 @@ def log_ticks(lo: float, hi: float) -> list[float]:
 # -- photo, relit, residual, observability -----------------------------------------------------------------
 
 def photo_and_relit(out: Path, solve: dict) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
-    """(photo, relit) as display images at one exposure (the photo's 99.5th percentile white), and
-    that exposure in stops; None for what is not on disk."""
+    """(photo, relit) as display images at one exposure (the photo's: `outputs.photo_exposure`, as
+    relit.png), and that exposure in stops; None for what is not on disk. The relit view shows the
+    photo where nothing was rendered (relit.exr's alpha), as relit.png does."""
     from pipelines.io import images
 
-    relit = _read_linear(out / "relit.exr")
+    rgba = read_rgba(out / "relit.exr") if (out / "relit.exr").is_file() else None
     photo = None
     name = solve.get("photo")
     if name and (out.parent / name).is_file():
         photo = images.read_image(out.parent / name).pixels
-    ref = photo if photo is not None else relit
-    if ref is None:
+    if rgba is None and photo is None:
         return None, None, None
-    scale = float(np.percentile(ref[ref > 0], 99.5)) if np.any(ref > 0) else 1.0
-    exposure = -float(np.log2(scale))
+    relit = None if rgba is None else rgba[..., :3]
+    if relit is not None and photo is not None and photo.shape == relit.shape:
+        relit = np.where(rgba[..., 3:] > 0.5, relit, photo)
+    exposure = photo_exposure(photo if photo is not None else relit)
     show = lambda img: None if img is None else images.tonemap(img, exposure)  # noqa: E731
     return show(photo), show(relit), exposure
 

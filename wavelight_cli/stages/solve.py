@@ -19,11 +19,12 @@ from pipelines.controllers.visibility import VisibilityOptions
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import heat_map, jsonable, upscale, write_json, write_light, write_residual
-from ..scene import SceneFiles, load_photo
+from ..outputs import (heat_map, jsonable, read_rgba, upscale, view_png, write_json, write_light, write_residual,
+                       write_view)
+from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 3
+VERSION = 4  # 4: relit.exr has alpha, relit.png the photo where nothing was rendered
 COMPARE_VERSION = 3
 
 
@@ -68,7 +69,6 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines.io.scene_files import load_mesh
     from pipelines.geometry import raycast
     from pipelines.light.cubemap import cross_image
-    from pipelines.model import render as rd
 
     given = given or set()
     refl.check()
@@ -85,8 +85,10 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         def work(d) -> Ran:
             t0 = time.monotonic()
             data = visibility_file.read_visibility(vis.path)
-            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
-            result = ctl.solve_scene(data, photo, material, opts, refl, given, backend, photo_path,
+            mesh = load_mesh(scene.mesh)
+            backend = raycast.make_backend(mesh, vis_opts.backend)
+            result = ctl.solve_scene(data, photo, material, opts, refl, given,
+                                     backend if data.method == "adaptive" else None, photo_path,
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive")
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
@@ -96,9 +98,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             outputs.append(images.write_png(out / "observability.png", upscale(obs_img), already_display=True))
             outputs.append(out / "coefficients.h5")
             light_file.write_solution(outputs[-1], sol, cube, result.unobservable, {"material": str(m.to_json())})
-            img = rd.pixels_to_image(result.relit, data.samples.pixel, camera.height, camera.width)
-            outputs.append(images.write_exr(out / "relit.exr", img))
-            outputs.append(images.write_png(out / "relit.png", img, exposure))
+            cover = mesh_coverage(photo_view(scene), camera, mesh, backend)
+            outputs += write_view(out, "relit", result.relit, data.samples.pixel, (camera.height, camera.width),
+                                  photo.pixels, exposure, cover=cover)
             rows, cols = data.samples.pixel[:, 0], data.samples.pixel[:, 1]
             outputs.append(write_residual(out / "residual.png", result.relit, photo.pixels[rows, cols],
                                           data.samples.pixel, (camera.height, camera.width),
@@ -124,8 +126,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             return Ran(outputs, jsonable(summary))
 
         def redisplay() -> list:
-            relit = images.read_image(out / "relit.exr").pixels
-            return [images.write_png(out / "relit.png", relit, exposure)]
+            return [view_png(out / "relit.png", read_rgba(out / "relit.exr"), photo.pixels, exposure)]
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of("solve") or {}
