@@ -193,6 +193,25 @@ def test_the_levels_caption_says_where_the_cross_puts_each_face(hemisphere):
         assert "-Z at the bottom left" in caption
 
 
+def test_the_hemisphere_caption_says_where_the_layout_puts_each_side_face():
+    """HEMISPHERE_CAPTION names the side each face is folded out to ('+X below', ...): each claim
+    is checked against `hemisphere_layout` (the face drawn in the middle of that side's band)."""
+    import re
+
+    from pipelines.light import cubemap
+
+    R = 8
+    cube = cubemap.CubeMap(R)
+    index = rf.hemisphere_layout(cube)
+    claims = re.findall(r"([+-][XYZ]) (below|above|right|left|in the centre)", rf.HEMISPHERE_CAPTION)
+    assert len(claims) == 5, claims
+    where = {"below": (2 * R - 1, R), "above": (0, R), "right": (R, 2 * R - 1), "left": (R, 0),
+             "in the centre": (R, R)}
+    for face, side in claims:
+        r, c = where[side]
+        assert cubemap.FACE_NAMES[cube.texel_face[index[r, c]]] == face.lower(), (face, side)
+
+
 # -- reflectance rounds ---------------------------------------------------------------------------------------
 
 def _round(k, model, fit, held, lm=None, seconds=1.0):
