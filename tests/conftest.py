@@ -17,6 +17,21 @@ import numpy as np
 import pytest
 
 DATA_DIR = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _private_user_cache(tmp_path_factory):
+    """The user cache folder (derived data kept between runs, `cubemap._user_cache_dir`) is the
+    session's own: no test reads what another run left in ~/.cache (subprocesses inherit it)."""
+    import os
+
+    old = os.environ.get("WAVELIGHT_CACHE_DIR")
+    os.environ["WAVELIGHT_CACHE_DIR"] = str(tmp_path_factory.mktemp("user-cache"))
+    yield
+    if old is None:
+        os.environ.pop("WAVELIGHT_CACHE_DIR", None)
+    else:
+        os.environ["WAVELIGHT_CACHE_DIR"] = old
 SCENES_DIR = DATA_DIR / "scenes"
 MITSUBA_SCENES = ("spot_overcast", "bunny_sun", "teapot_sun_phong")
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pipelines.light.cubemap import CROSS_BLOCKS, FACE_NAMES, CubeMap, cross_image, cube_to_latlong, direction_to_spherical, face_rectangle_solid_angle, latlong_directions, latlong_solid_angles, latlong_to_cube, spherical_to_direction
+from pipelines.light import cubemap
 
 RESOLUTIONS = [2, 4, 8, 16, 32, 64, 128]
 MODES = [pytest.param(True, id="hemisphere"), pytest.param(False, id="sphere")]
@@ -325,3 +326,30 @@ def test_sphere_and_hemisphere_share_the_upper_texels(hemisphere):
     assert np.all(k >= 0)
     np.testing.assert_allclose(other.directions[k], d, atol=1e-12)
     np.testing.assert_allclose(other.solid_angles[k], cube.solid_angles[cube.lookup(d)], rtol=1e-12)
+
+
+def test_latlong_overlap_is_kept_between_runs_and_rebuilt_when_damaged(tmp_path, monkeypatch):
+    """The lat-long overlap is stored in the user cache folder: a later process reads the same
+    matrix; a damaged or wrong-shaped file is rebuilt; WAVELIGHT_CACHE_DIR='' keeps nothing."""
+    from scipy import sparse
+
+    monkeypatch.setenv("WAVELIGHT_CACHE_DIR", str(tmp_path))
+    cube = cubemap.CubeMap(4)
+    built = cubemap._build_latlong_overlap(16, cube)
+    cubemap.latlong_overlap.cache_clear()
+    first = cubemap.latlong_overlap(16, cube)
+    files = list(tmp_path.glob("latlong-overlap-*H16-R4-hemi.npz"))
+    assert len(files) == 1 and (first != built).nnz == 0
+    cubemap.latlong_overlap.cache_clear()
+    assert (cubemap.latlong_overlap(16, cube) != built).nnz == 0  # read back
+    files[0].write_bytes(b"not a matrix")
+    cubemap.latlong_overlap.cache_clear()
+    assert (cubemap.latlong_overlap(16, cube) != built).nnz == 0  # rebuilt
+    sparse.save_npz(files[0], sparse.csr_matrix((3, 3)))  # a readable file of the wrong shape
+    cubemap.latlong_overlap.cache_clear()
+    assert (cubemap.latlong_overlap(16, cube) != built).nnz == 0
+    monkeypatch.setenv("WAVELIGHT_CACHE_DIR", "")
+    cubemap.latlong_overlap.cache_clear()
+    assert cubemap._user_cache_dir() is None and (cubemap.latlong_overlap(8, cube) != cubemap._build_latlong_overlap(8, cube)).nnz == 0
+    assert not list(tmp_path.glob("*H8-*"))
+    cubemap.latlong_overlap.cache_clear()

@@ -1,4 +1,4 @@
-"""Exports of the light in other tools' conventions (pipelines/exports.py, `wavelight export`), each
+"""Exports of the light in other tools' conventions (pipelines/io/exports.py, `wavelight export`), each
 read back the way that tool reads it: every direction gets the same radiance, the energy is kept."""
 
 from __future__ import annotations

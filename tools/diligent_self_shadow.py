@@ -5,7 +5,7 @@ Usage:
     .venv/bin/python tools/diligent_self_shadow.py scene SCENE        # all-shadowed pixels of a solved scene
     .venv/bin/python tools/diligent_self_shadow.py patched-cli -s SCENE solve ...   # wavelight with the fix
 
-What goes wrong today (pipelines/camera.py, pipelines/raycast.py):
+What goes wrong today (pipelines/geometry/camera.py, pipelines/geometry/raycast.py):
   `pixel_samples` takes Embree's float32 hit distance t (float32 ray: origin rounded in the recentred
   frame, direction rounded) and computes position = o + t d with the float64 ray. From a camera D away,
   Embree's float32 intersection gives t with an error ~eps32 x D (eps32 = 2^-23 ~ 1.2e-7), which moves

@@ -33,7 +33,7 @@ phi goes to phi + azimuth), average 4 x 4 blocks to 256 x 128, zero the lower he
 so that the largest irradiance of the luminance (Rec. 709 weights) over upward normals is pi (a white
 Lambertian patch facing the best direction has radiance 1).
 
-The light goes to Mitsuba through wavelight's export (pipelines/exports.py): each pixel repeated
+The light goes to Mitsuba through wavelight's export (pipelines/io/exports.py): each pixel repeated
 ENV_SUPERSAMPLE x ENV_SUPERSAMPLE (Mitsuba interpolates bilinearly; a sun pixel keeps its value and
 power), `to_mitsuba` (column mirror) and the emitter XML of `mitsuba_xml` (to_world =
 MITSUBA_TO_WORLD) loaded as is.
@@ -1165,7 +1165,7 @@ def scene_readme(spec: Scene, params: dict, results: list[ViewResult]) -> str:
               "",
               "RENDERING: integrator \"direct\" (direct light only, shadowed, no interreflection), hide_emitters, "
               "box pixel filter, multijitter",
-              f"  in passes of {PASS_SPP} spp; light handed to Mitsuba by wavelight's pipelines/exports.py "
+              f"  in passes of {PASS_SPP} spp; light handed to Mitsuba by wavelight's pipelines/io/exports.py "
               f"(f={ENV_SUPERSAMPLE} supersampling, to_mitsuba column mirror,",
               "  mitsuba_xml emitter with to_world = MITSUBA_TO_WORLD); Mitsuba's envmap returns our pixel values at "
               f"our pixel centres to {params['envmap_check']['pixel_centre_max_rel_diff']:.1g}"
@@ -1226,7 +1226,7 @@ def forward_readme(out: Path, lights: dict, sag: float, nv: int, nf: int, view_c
             lines += [f"  {name:<24}{desc:<36}{100 * rr['mc_noise_rel_mask']:.2f}%"
                       + (f" ({rr['glint_pixels']} glint px: {100 * rr['mc_noise_rel_glints']:.1f}%; others "
                          f"{100 * rr['mc_noise_rel_mask_without_glints']:.2f}%)" if rr["glint_pixels"] else "")]
-    lines += ["", "RENDERING: integrator \"direct\", hide_emitters, box filter, light via pipelines/exports.py "
+    lines += ["", "RENDERING: integrator \"direct\", hide_emitters, box filter, light via pipelines/io/exports.py "
               f"(f={ENV_SUPERSAMPLE}, to_mitsuba, mitsuba_xml).",
               f"VERIFICATION: Mitsuba's hit along its camera ray through each mask pixel centre vs the analytic "
               f"intersection of the OpenCV ray: max {view_check['max_footprints']:.1g} pixel footprints."]

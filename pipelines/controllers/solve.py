@@ -30,6 +30,7 @@ DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
 EXPLORE_ROWS = 8192  # refinement levels are chosen on this many of the fit sample's rows
 PROBE_ROWS = 2048  # --reflectance auto probes a specular term on this many fit rows (and half as many held out)
 LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of them where highlights are)
+ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -140,7 +141,9 @@ class _Systems:
         self.sample_info = {"fit": self.fit_sample.summary(), "held_out": self.held_sample.summary(),
                             "explore_rows": min(EXPLORE_ROWS, len(self.fit_sample.rows))}
 
-    def system(self, material: Material):
+    def system(self, material: Material, round_rows: int | None = None):
+        """The light system under `material`; `round_rows`: a specular round's, on that many rows
+        of the fit sample (its head: spread like the whole) and the whole held-out sample."""
         from ..light.system import LightSystem, build_normal_equations
 
         if self.options.exact:
@@ -152,7 +155,7 @@ class _Systems:
             return ne
         t0 = time.perf_counter()
         fs, hs = self.fit_sample, self.held_sample
-        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates)
+        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows)
         held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
 
@@ -308,11 +311,14 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         return sol
 
     def solve_light(m: Material):
-        ne = systems.system(m)
         if not options.exact and m.specular and "solution" in refined:
+            # a reflectance round: the refinement's tree re-solved on a smaller system (the rounds
+            # fit a handful of material parameters; the final light is refined on the whole sample)
+            ne = systems.system(m, ROUND_ROWS)
             sol = bases.refit(ne, vis.cube, refined["solution"])
             if sol is not None:
                 return sol, ne
+        ne = systems.system(m)
         return full_solve(m, ne), ne
 
     def on_round(r):
@@ -349,10 +355,12 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                          "use --reflectance lambert, or check the photo and the pose") from None
     material, sol, system = result.material, result.solution, result.context
     if not options.exact and material.specular and sol is not refined.get("solution"):
-        # the rounds re-solved the refinement of an earlier material: refine once more under the chosen one
+        # the rounds re-solved the refinement of an earlier material on a smaller system: refine once
+        # more under the chosen one, on the whole sample
         progress.note(f"refining the light under {material_text(material)}")
+        system = systems.system(material)
         sol = full_solve(material, system)
-        result.solution = sol
+        result.solution, result.context = sol, system
     recast = np.zeros(0, np.int64)
     if adaptive and backend is not None:
         recast = bright_texels(sol.light, vis.cube)

@@ -255,8 +255,52 @@ def latlong_solid_angles(height: int, width: int | None = None) -> np.ndarray:
     return np.repeat((band * 2.0 * np.pi / width)[:, None], width, axis=1)
 
 
+OVERLAP_FORMAT = 1  # bump when `_build_latlong_overlap` changes: stored overlaps of older formats are not read
+
+
+def _user_cache_dir():
+    """Where derived data that depends only on its parameters is kept between runs
+    ($WAVELIGHT_CACHE_DIR, else $XDG_CACHE_HOME/wavelight, else ~/.cache/wavelight); None to not keep it."""
+    import os
+    from pathlib import Path
+
+    if os.environ.get("WAVELIGHT_CACHE_DIR") == "":
+        return None
+    base = os.environ.get("WAVELIGHT_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "wavelight")
+    return Path(base)
+
+
 @functools_cache
 def latlong_overlap(height: int, cube: CubeMap):
+    """`_build_latlong_overlap`, kept in memory and in the user's cache folder (`_user_cache_dir`):
+    it depends on (H, R, hemisphere) alone and takes ~1 s at R = 32, tens of seconds at R = 128.
+    A stored matrix that cannot be read, or has the wrong shape, is rebuilt."""
+    from scipy import sparse
+
+    folder = _user_cache_dir()
+    name = f"latlong-overlap-v{OVERLAP_FORMAT}-H{int(height)}-R{cube.resolution}-{'hemi' if cube.hemisphere else 'sphere'}.npz"
+    if folder is not None:
+        try:
+            m = sparse.load_npz(folder / name).tocsr()
+            if m.shape == (int(height) * 2 * int(height), cube.n_texels):
+                return m
+        except Exception:  # absent, unreadable, or from another scipy: rebuild it
+            pass
+    m = _build_latlong_overlap(height, cube)
+    if folder is not None:
+        try:
+            from ..io.files import atomic_output
+
+            folder.mkdir(parents=True, exist_ok=True)
+            with atomic_output(folder / name, now=True) as tmp:
+                sparse.save_npz(tmp, m, compressed=False)
+        except OSError:  # a read-only or full home: the matrix is only kept in memory
+            pass
+    return m
+
+
+def _build_latlong_overlap(height: int, cube: CubeMap):
     """Sparse (H*2H, N) matrix of the solid angle each lat-long pixel shares with each texel.
 
     Pixels are cut into cells no larger than about half a texel; a cell whose corners and centre

@@ -338,21 +338,33 @@ class TransportRows:
             self._diffuse = Pyramid(D, v.cube.tile_sizes)
         return self._diffuse
 
-    def specular(self, model: str, shininess: float) -> Pyramid:
-        key = (model, float(shininess))
+    def specular(self, model: str, shininess: float, n_rows: int | None = None) -> Pyramid:
+        """S (ks = 1) of the first `n_rows` rows (all by default); the latest one is kept (memory)."""
+        n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
+        key = (model, float(shininess), n)
         if key not in self._specular:
             from ..model.materials import Material
             from ..model.render import specular_transport
 
-            S = np.empty((self.vis.n_pixels, self.vis.cube.n_texels), np.float32)
+            S = np.empty((n, self.vis.cube.n_texels), np.float32)
             for sl, V in self.vis.blocks(8192, raw=True):
-                S[sl] = specular_transport(V, self.vis.samples.normal[sl], self.vis.samples.view[sl], self.vis.cube,
+                if sl.start >= n:
+                    break
+                sl = slice(sl.start, min(sl.stop, n))
+                S[sl] = specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl],
+                                           self.vis.samples.view[sl], self.vis.cube,
                                            Material(ks=(1.0, 1.0, 1.0), shininess=shininess, model=model))
-            self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}  # the latest only (memory)
+            self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}
         return self._specular[key]
 
-    def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int) -> RowsPart:
-        """The rows' system under `material` against `photo` ((n, C) values of these rows)."""
-        S = self.specular(material.model, material.shininess) if material.specular else None
-        return RowsPart(self.diffuse(), S, np.asarray(material.kd, float), np.asarray(material.ks, float),
-                        np.asarray(photo, np.float64), np.asarray(weights, np.float64), int(n_pixels))
+    def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
+             n_rows: int | None = None) -> RowsPart:
+        """The rows' system under `material` against `photo` ((n, C) values of these rows); with
+        `n_rows`, of the first n_rows rows only, standing for the same pixels (weights scaled up, as
+        `RowsPart.head`): a specular round's smaller system builds S for those rows alone."""
+        n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
+        w = np.asarray(weights, np.float64)
+        D = self.diffuse() if n == self.vis.n_pixels else self.diffuse().head(n)
+        S = self.specular(material.model, material.shininess, n) if material.specular else None
+        return RowsPart(D, S, np.asarray(material.kd, float), np.asarray(material.ks, float),
+                        np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels))

@@ -382,10 +382,18 @@ class Round:
     held_out_rmse: float | None  # at the light's chosen level, over the held-out pixels
     light_seconds: float
     fit: SpecularFit | None = None
+    # "probe": auto's probe (LM with round 0's light fixed, no light solve): its errors are over the
+    # probe's rows, compared with Lambert's over the same rows (`lambert_rmse_same_rows`), not with round 0's
+    kind: str = "round"
+    lambert_rmse_same_rows: float | None = None
 
     def summary(self) -> dict:
-        out = {"round": self.index, "material": self.material.to_json(), "fit_rmse": self.fit_rmse,
+        out = {"round": self.index, "kind": self.kind, "material": self.material.to_json(), "fit_rmse": self.fit_rmse,
                "held_out_rmse": self.held_out_rmse, "light_seconds": self.light_seconds}
+        if self.kind == "probe":
+            out["lambert_rmse_same_rows"] = self.lambert_rmse_same_rows
+            out["note"] = ("the probe: the specular term fitted with round 0's light fixed, scored on the probe's "
+                           "rows against Lambert on the same rows (lambert_rmse_same_rows); no light was solved")
         if self.fit is not None:
             out["lm"] = self.fit.summary()
         return out
@@ -562,13 +570,14 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     plain = data.rmse(lambert.kd, 0.0, 1.0, which)
     probe_err = probe.held_out_rmse if which == "held_out" else probe.fit_rmse
     gain = 1.0 - probe_err / plain if plain else 0.0
-    candidates["probe"] = {**probe.summary(), "gain": gain}
+    candidates["probe"] = {**probe.summary(), "gain": gain, "compared_on": which.replace("_", "-") + " rows of the probe",
+                           "lambert_rmse_same_rows": plain}
     if not probe.ks_significant or gain < min_gain:
         ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
         why = (f"is not significant (ks {ks:.3g} +- {sd:.2g})" if not probe.ks_significant else
                f"lowers the {which.replace('_', '-')} error by only {100 * gain:.2f} % (< {100 * min_gain:g} %)")
         return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}",
-                    [r0, Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe)])
+                    [r0, Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)])
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
     shifted = (lambda r: progress(replace(r, index=r.index + 1))) if progress else None
     spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,

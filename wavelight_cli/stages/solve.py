@@ -24,7 +24,8 @@ from ..outputs import (heat_map, jsonable, read_rgba, upscale, view_png, write_j
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 4  # 4: relit.exr has alpha, relit.png the photo where nothing was rendered
+VERSION = 5  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+#   alpha, relit.png the photo where nothing was rendered and the photo's exposure
 COMPARE_VERSION = 3
 
 
