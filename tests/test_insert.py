@@ -66,7 +66,7 @@ def _rendered(scene: Path) -> np.ndarray:
 def test_composite_equals_the_full_render_where_the_photo_is_our_model(insertion):
     """Wherever both renders have the pixel (edges are left out by the render stage), the
     composite photo + with - without is the full render of scene + sphere, to float32 precision."""
-    a, b, c, both = insertion["a"], insertion["b"], insertion["c"], insertion["both"]
+    b, c, both = insertion["b"], insertion["c"], insertion["both"]
     assert both.sum() > 30000
     np.testing.assert_allclose(c[both], b[both], rtol=2e-5, atol=1e-6)
 
