@@ -155,6 +155,64 @@ def test_the_light_figure_shows_the_sky_beside_the_sun(lambert_solved):
     _image_axes(fig, "lat-long (exchange format)")
 
 
+def _rgba_png(path):
+    import OpenImageIO as oiio
+
+    return np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT))
+
+
+@pytest.mark.parametrize("hemisphere", [True, False])
+def test_the_light_cross_png_shows_the_sky_and_draws_no_texel_as_background(tmp_path, hemisphere):
+    """solve's light_cross.png: a sky 1/100 of a sun (the sun blurred over 2 % of the texels, as a
+    solve spreads it) keeps the sky visible, and the cross' unused area is transparent background
+    and at most half the image (it was 3/4 of it, dark grey, for a hemisphere)."""
+    from pipelines.io import images
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(16, hemisphere)
+    sun_dir = np.array([0.5, 0.2, 0.8]) / np.linalg.norm([0.5, 0.2, 0.8])
+    sun = np.argsort(-(cube.directions @ sun_dir))[: int(0.02 * cube.n_texels)]
+    texels = np.ones((cube.n_texels, 3)) * (0.6, 0.7, 1.0)  # a blue sky
+    texels[sun] = 100.0
+    path = outputs.write_light(tmp_path, "light", texels, cube)[2]
+    png = _rgba_png(path)
+    assert png.shape[2] == 4
+    # which texel each PNG pixel shows: the same crop and enlargement applied to the texel index
+    ids, valid = cubemap.cross_image(np.arange(cube.n_texels, dtype=np.float64), cube, fill=-1)
+    index = np.round(outputs.upscale(outputs.cross_preview(np.repeat(ids[..., None], 3, -1), valid))[..., 0])
+    used = outputs.upscale(outputs.cross_preview(np.zeros(valid.shape + (3,)), valid))[..., 3] > 0
+    assert png.shape[:2] == used.shape
+    np.testing.assert_array_equal(png[..., 3] > 0.5, used)  # opaque exactly on the texels
+    assert (~used).mean() <= 0.5 + 1e-9, "most of the preview holds no texel"
+    assert np.all(png[~used, :3] == 0)
+    sky = used & ~np.isin(index, sun)
+    brightness = png[..., :3].max(axis=-1)
+    assert brightness[sky].mean() > 0.3, "the sky is tone-mapped to black"
+    assert brightness[used & np.isin(index, sun)].min() > 0.98
+    assert png[sky][:, 2].mean() > png[sky][:, 0].mean()  # and it stays blue
+    # what the old preview (auto exposure on the cross) showed of that sky
+    cross, _ = cubemap.cross_image(texels, cube)
+    old = images.tonemap(cross).max(axis=-1)[valid & (cross.max(axis=-1) < 50)]
+    assert old.mean() < 0.15
+    text = outputs.read_png_text(path)
+    assert float(text["wavelight:log_white"]) == pytest.approx(100.0)
+    assert float(text["wavelight:log_black"]) <= 0.6 * 1.0001
+
+
+def test_the_observability_png_is_a_cropped_cross_with_its_scale(tmp_path):
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(8)
+    values = np.linspace(0, 0.9, cube.n_texels)  # white (1) is the report's colour for no texel
+    path = outputs.write_cross_heat_png(tmp_path / "observability.png", values, cube, 1.0, "obs", "fraction")
+    png = _rgba_png(path)
+    assert (png[..., 3] == 0).mean() <= 0.5
+    assert rf.heat_scale(path) == (1.0, "obs", "fraction")
+    shown = rf.observability_image(tmp_path, cube)  # the report's panel: no texel = DEAD, same size
+    assert shown.shape == png.shape[:2] + (3,)
+    assert np.all(shown[png[..., 3] == 0] == 1.0) and not np.any(np.all(shown[png[..., 3] > 0] == 1.0, axis=-1))
+
+
 def test_log_display_keeps_the_hue_and_maps_the_bounds():
     img = np.array([[[0.25, 0.5, 1.0], [2000.0, 1800.0, 1000.0], [0.0, 0.0, 0.0], [1e-9, 0, 0]]])
     disp, lo, hi = outputs.log_display(img, 0.01, 2000.0)

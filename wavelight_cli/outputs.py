@@ -34,10 +34,25 @@ def jsonable(value):
     return value
 
 
+CROSS_PREVIEW = "the cube cross (row block 0: +Z; 1: +X, +Y, -X, -Y; 2: -Z) cropped to its texels; transparent: no texel"
+
+
+def cross_preview(display: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(3R, 4R, 3) display values of a cube cross -> RGBA cropped to the rows and columns that hold
+    texels (a hemisphere keeps the top 1.5R rows), transparent (A = 0) where the layout has no
+    texel: the unused area reads as background, not as a dark part of the light."""
+    rows, cols = np.nonzero(valid)
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    rgba = np.concatenate([np.asarray(display, np.float64), valid[..., None].astype(np.float64)], axis=-1)[crop]
+    rgba[rgba[..., 3] == 0, :3] = 0.0
+    return rgba
+
+
 def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None,
                 unobservable: np.ndarray | None = None) -> list[Path]:
     """A cube-map light as <stem>_latlong.exr (exchange format), <stem>_cross.exr and a preview PNG
-    of the cross (texels outside the layout dark grey, unobservable texels dark magenta).
+    of the cross (`cross_preview`: cropped, transparent where no texel is; unobservable texels dark
+    magenta).
 
     The preview is log tone-mapped (`log_display`): a sun does not push the sky to black. The
     radiance at black and at white is in the PNG's text (`wavelight:log_black`, `wavelight:log_white`)."""
@@ -50,26 +65,39 @@ def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int 
     cross, valid = cubemap.cross_image(texels, cube)
     images.write_exr(paths[1], cross)
     preview, lo, hi = log_display(cross)
-    preview[~valid] = 0.15
     if unobservable is not None and np.any(unobservable):
         marked, _ = cubemap.cross_image(np.asarray(unobservable, np.float64), cube)
         preview[marked > 0.5] = (0.35, 0.0, 0.35)
-    write_display_png(paths[2], upscale(preview), {
+    write_display_png(paths[2], upscale(cross_preview(preview, valid)), {
         "wavelight:display": "log: brightness proportional to log of the brightest channel's radiance",
-        "wavelight:log_black": f"{lo:.6g}", "wavelight:log_white": f"{hi:.6g}"})
+        "wavelight:log_black": f"{lo:.6g}", "wavelight:log_white": f"{hi:.6g}", "wavelight:layout": CROSS_PREVIEW})
     return paths
 
 
-def log_range(values: np.ndarray, decades: float = 4.0, percentile: float = 2.0) -> tuple[float, float]:
+def write_cross_heat_png(path: Path, values: np.ndarray, cube, scale: float, what: str, units: str) -> Path:
+    """Per-texel values (N,) as a heat map on the cube cross (`cross_preview`), its scale in the
+    PNG's text as `write_heat_png` records it."""
+    from pipelines.light import cubemap
+
+    cross, valid = cubemap.cross_image(np.asarray(values, np.float64), cube)
+    return write_display_png(path, upscale(cross_preview(heat_map(cross, scale), valid)), {
+        "wavelight:heat_scale": f"{scale:.6g}", "wavelight:heat_what": what, "wavelight:heat_units": units,
+        "wavelight:layout": CROSS_PREVIEW})
+
+
+def log_range(values: np.ndarray, decades: float = 6.0, percentile: float = 2.0,
+              margin: float = 4.0) -> tuple[float, float]:
     """(black, white) radiance of `log_display` for these values: white at the brightest channel's
-    maximum, black at the `percentile` of the positive values but at most `decades` below white."""
+    maximum, black `margin` times below the `percentile` of the positive values (a uniform sky
+    shows two stops above black, not at it), that percentile taken at most `decades` below white
+    (specks of numerical dust stay black)."""
     m = np.clip(np.nan_to_num(np.asarray(values, np.float64), nan=0.0, posinf=0.0), 0.0, None)
     m = m.max(axis=-1) if m.ndim > 1 and m.shape[-1] == 3 else m
     pos = m[m > 0]
     if pos.size == 0:
         return 0.1, 1.0
     hi = float(pos.max())
-    lo = max(float(np.percentile(pos, percentile)), hi * 10.0 ** -decades)
+    lo = max(float(np.percentile(pos, percentile)), hi * 10.0 ** -decades) / margin
     if not lo < hi:
         lo = hi / 10.0
     return lo, hi

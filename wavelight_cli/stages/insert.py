@@ -13,11 +13,12 @@ from pipelines.errors import InputError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import heat_map, photo_exposure, write_json
+from ..outputs import photo_exposure, write_heat_png, write_json
 from ..scene import SceneFiles, load_photo, material_from_options, require, solved_light
 from .visibility import visibility_stage
 
-VERSION = 2
+VERSION = 3  # 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
+SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
 
 
 @dataclass(frozen=True)
@@ -121,8 +122,9 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
             outputs = [images.write_exr(out / f"{opts.name}.exr", r.composite),
                        images.write_png(out / f"{opts.name}.png", r.composite, png_exposure),
                        images.write_exr(out / f"{opts.name}_render.exr", r.with_object),
-                       images.write_png(out / f"{opts.name}_shadow.png", heat_map(np.clip(-r.shadow, 0, None), 0.5),
-                                        already_display=True)]
+                       write_heat_png(out / f"{opts.name}_shadow.png", np.clip(-r.shadow, 0, None), SHADOW_WHITE,
+                                      "relative darkening the object casts on the known geometry",
+                                      "fraction of the radiance without the object")]
             summary = {"object": opts.object, "at": list(opts.at), "object_pixels": int(r.object_mask.sum()),
                        "shadowed_pixels_5pct": int((r.shadow < -0.05).sum()), "darkest_shadow": float(r.shadow.min()),
                        "resolution": cube.resolution, "light": "recovered" if opts.light is None else str(opts.light),

@@ -22,8 +22,8 @@ DEAD = (1.0, 1.0, 1.0)  # figure pixels that hold no texel
 OUTLINE = (0.1, 0.9, 0.3)  # the tree's leaf boundaries
 UNOBSERVABLE = (0.6, 0.0, 0.6)
 OBSERVABILITY_NOTE = "sqrt(G_ii / max G_ii)"
-# `wavelight insert` draws NAME_shadow.png as heat_map(relative darkening, 0.5) without recording
-# the scale (wavelight_cli/stages/insert.py); used when the PNG's text does not say.
+# `wavelight insert` draws NAME_shadow.png as heat_map(relative darkening, 0.5); insert stage
+# version 2 did not record the scale in the PNG's text: used when the text does not say.
 INSERT_SHADOW_WHITE = 0.5
 
 
@@ -165,12 +165,20 @@ def crop_to(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def observability_image(out: Path, cube) -> np.ndarray | None:
-    """out/observability.png (an enlarged cross) cropped to the cross' texels."""
+    """out/observability.png (an enlarged cross) cropped to the cross' texels, DEAD where no texel
+    is (the PNG is already cropped, transparent there: `outputs.cross_preview`; an older one is the
+    whole cross, cropped here)."""
     from pipelines.light import cubemap
 
-    img = _read_display(out / "observability.png")
-    if img is None:
+    path = out / "observability.png"
+    if not path.is_file():
         return None
+    rgba = read_rgba(path)
+    if read_png_text(path).get("wavelight:layout"):
+        img = rgba[..., :3].astype(np.float64)
+        img[rgba[..., 3] < 0.5] = DEAD
+        return img
+    img = _read_display(path)
     _, valid = cubemap.cross_image(np.zeros(cube.n_texels), cube)
     k = img.shape[1] // valid.shape[1]
     if k < 1 or img.shape[0] != k * valid.shape[0]:

@@ -19,7 +19,7 @@ from pipelines.controllers.visibility import VisibilityOptions
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import (heat_map, jsonable, read_rgba, upscale, view_png, write_json, write_light, write_residual,
+from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, write_json, write_light, write_residual,
                        write_view)
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
@@ -66,10 +66,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None):
     """Recover the light (and the reflectance, by `refl`); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
-    from pipelines.io import images, light_file, visibility_file
+    from pipelines.io import light_file, visibility_file
     from pipelines.io.scene_files import load_mesh
     from pipelines.geometry import raycast
-    from pipelines.light.cubemap import cross_image
 
     given = given or set()
     refl.check()
@@ -93,10 +92,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive")
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
-            obs_cross, valid = cross_image(result.observability, cube)
-            obs_img = heat_map(obs_cross, 1.0)
-            obs_img[~valid] = 0.15
-            outputs.append(images.write_png(out / "observability.png", upscale(obs_img), already_display=True))
+            outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
+                                                "sqrt(G_ii / max G_ii): how strongly the used pixels respond to "
+                                                "the texel's radiance; black = unobservable", "fraction of the best"))
             outputs.append(out / "coefficients.h5")
             light_file.write_solution(outputs[-1], sol, cube, result.unobservable, {"material": str(m.to_json())})
             cover = mesh_coverage(photo_view(scene), camera, mesh, backend)
