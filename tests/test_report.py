@@ -180,15 +180,20 @@ def test_the_html_page_has_the_reports_numbers(reported):
     assert "<code>mitsuba/emitter.xml</code>" in html and "&lt;emitter&gt;" in html
 
 
-PROBE_REFLECTANCE = {
+PROBE_REFLECTANCE = {  # the shape `solve --reflectance auto` writes when the probe is rejected (solve version 5)
     "format": "wavelight-reflectance-1", "model": "lambert", "kd": [1.0, 1.0, 1.0], "ks": [0.0, 0.0, 0.0], "n": 1.0,
     "ks_over_kd": 0.0, "mode": "auto", "chosen_round": 0,
     "decision": "lambert: a blinn-phong term fitted with the Lambertian light fixed is not significant",
-    "candidates": {"lambert": {"held_out_rmse": 0.0306, "fit_rmse": 0.0327}, "probe": {"pixels": 5580}},
-    "rounds": [{"round": 0, "material": {"model": "lambert", "kd": [1, 1, 1], "ks": [0, 0, 0], "n": 1.0},
+    "candidates": {"lambert": {"held_out_rmse": 0.0306, "fit_rmse": 0.0327},
+                   "probe": {"pixels": 5580, "fit_rmse": 0.0278, "held_out_rmse": 0.0297, "gain": 0.0033,
+                             "compared_on": "held-out rows of the probe", "lambert_rmse_same_rows": 0.0298,
+                             "ks_significant": False}},
+    "rounds": [{"round": 0, "kind": "round", "material": {"model": "lambert", "kd": [1, 1, 1], "ks": [0, 0, 0], "n": 1.0},
                 "fit_rmse": 0.0327, "held_out_rmse": 0.0306, "light_seconds": 8.0},
-               {"round": 1, "material": {"model": "blinn-phong", "kd": [1, 1, 1], "ks": [1e-5] * 3, "n": 8192.0},
-                "fit_rmse": 0.0278, "held_out_rmse": 0.0297, "light_seconds": 0.0, "lm": {"pixels": 5580}}]}
+               {"round": 1, "kind": "probe",
+                "material": {"model": "blinn-phong", "kd": [1, 1, 1], "ks": [1e-5] * 3, "n": 8192.0},
+                "fit_rmse": 0.0278, "held_out_rmse": 0.0297, "light_seconds": 0.0, "lambert_rmse_same_rows": 0.0298,
+                "lm": {"pixels": 5580}}]}
 
 
 def test_reflectance_rounds_and_stale_figures(reported, tmp_path):
@@ -201,11 +206,31 @@ def test_reflectance_rounds_and_stale_figures(reported, tmp_path):
     ok(invoke(scene, "report"))
     md = (out / "report.md").read_text()
     assert "![reflectance rounds](report/reflectance.png)" in md
-    assert "| 1 | probe (LM, light of round 0 fixed) |" in md and md.count("| not kept |") == 1
+    assert "| probe | probe (LM, light of round 0 fixed) |" in md and md.count("| not kept |") == 1
+    assert "| 2.97 % (Lambert on these rows: 2.98 %) | not kept |" in md
     assert "| 0 | light solved under this material | lambert kd (1, 1, 1) | 3.27 % | 3.06 % | **kept** |" in md
-    assert "on 5580 pixels (its errors are over those pixels); it was not kept." in md
+    assert ("on 5580 pixels; no light is solved for it, so its errors are over its own rows: on the held-out rows "
+            "of the probe it has 2.97 % against Lambert's 2.98 % on the same rows (gain 0.33 %); it was not kept.") in md
     assert not (out / "report" / "output-gone-residual.png").exists()  # an earlier run's figure
     assert "turned.png" not in md and "turned.png" not in (out / "report.html").read_text()
+
+
+def test_the_probe_of_a_real_auto_solve_is_reported_against_lambert_on_its_rows(lambert_solved, tmp_path):
+    """`solve` with its default --reflectance auto on the (Lambertian) sample: the probe is
+    rejected; the report quotes its error and Lambert's on the same rows from reflectance.json,
+    not round 0's error over other pixels."""
+    scene = copy_scene(lambert_solved, tmp_path / "s")
+    ok(invoke(scene, "solve", "--resolution", RES))
+    ok(invoke(scene, "report"))
+    refl = json.loads((scene / "out" / "reflectance.json").read_text())
+    (probe,) = [r for r in refl["rounds"] if r.get("kind") == "probe"]
+    md = (scene / "out" / "report.md").read_text()
+    section = md.split("## Reflectance")[1].split("\n## ")[0]
+    assert (f"it has {100 * probe['held_out_rmse']:.2f} % against Lambert's "
+            f"{100 * probe['lambert_rmse_same_rows']:.2f} % on the same rows") in section
+    assert f"(Lambert on these rows: {100 * probe['lambert_rmse_same_rows']:.2f} %) | not kept |" in section
+    assert "| 1 |" not in section  # the probe is not round 1 of the light
+    assert (scene / "out" / "report" / "reflectance.png").is_file()
 
 
 def test_a_report_of_a_solve_alone(lambert_solved, tmp_path):

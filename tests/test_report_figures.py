@@ -155,6 +155,64 @@ def test_the_light_figure_shows_the_sky_beside_the_sun(lambert_solved):
     _image_axes(fig, "lat-long (exchange format)")
 
 
+def _rgba_png(path):
+    import OpenImageIO as oiio
+
+    return np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT))
+
+
+@pytest.mark.parametrize("hemisphere", [True, False])
+def test_the_light_cross_png_shows_the_sky_and_draws_no_texel_as_background(tmp_path, hemisphere):
+    """solve's light_cross.png: a sky 1/100 of a sun (the sun blurred over 2 % of the texels, as a
+    solve spreads it) keeps the sky visible, and the cross' unused area is transparent background
+    and at most half the image (it was 3/4 of it, dark grey, for a hemisphere)."""
+    from pipelines.io import images
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(16, hemisphere)
+    sun_dir = np.array([0.5, 0.2, 0.8]) / np.linalg.norm([0.5, 0.2, 0.8])
+    sun = np.argsort(-(cube.directions @ sun_dir))[: int(0.02 * cube.n_texels)]
+    texels = np.ones((cube.n_texels, 3)) * (0.6, 0.7, 1.0)  # a blue sky
+    texels[sun] = 100.0
+    path = outputs.write_light(tmp_path, "light", texels, cube)[2]
+    png = _rgba_png(path)
+    assert png.shape[2] == 4
+    # which texel each PNG pixel shows: the same crop and enlargement applied to the texel index
+    ids, valid = cubemap.cross_image(np.arange(cube.n_texels, dtype=np.float64), cube, fill=-1)
+    index = np.round(outputs.upscale(outputs.cross_preview(np.repeat(ids[..., None], 3, -1), valid))[..., 0])
+    used = outputs.upscale(outputs.cross_preview(np.zeros(valid.shape + (3,)), valid))[..., 3] > 0
+    assert png.shape[:2] == used.shape
+    np.testing.assert_array_equal(png[..., 3] > 0.5, used)  # opaque exactly on the texels
+    assert (~used).mean() <= 0.5 + 1e-9, "most of the preview holds no texel"
+    assert np.all(png[~used, :3] == 0)
+    sky = used & ~np.isin(index, sun)
+    brightness = png[..., :3].max(axis=-1)
+    assert brightness[sky].mean() > 0.3, "the sky is tone-mapped to black"
+    assert brightness[used & np.isin(index, sun)].min() > 0.98
+    assert png[sky][:, 2].mean() > png[sky][:, 0].mean()  # and it stays blue
+    # what the old preview (auto exposure on the cross) showed of that sky
+    cross, _ = cubemap.cross_image(texels, cube)
+    old = images.tonemap(cross).max(axis=-1)[valid & (cross.max(axis=-1) < 50)]
+    assert old.mean() < 0.15
+    text = outputs.read_png_text(path)
+    assert float(text["wavelight:log_white"]) == pytest.approx(100.0)
+    assert float(text["wavelight:log_black"]) <= 0.6 * 1.0001
+
+
+def test_the_observability_png_is_a_cropped_cross_with_its_scale(tmp_path):
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(8)
+    values = np.linspace(0, 0.9, cube.n_texels)  # white (1) is the report's colour for no texel
+    path = outputs.write_cross_heat_png(tmp_path / "observability.png", values, cube, 1.0, "obs", "fraction")
+    png = _rgba_png(path)
+    assert (png[..., 3] == 0).mean() <= 0.5
+    assert rf.heat_scale(path) == (1.0, "obs", "fraction")
+    shown = rf.observability_image(tmp_path, cube)  # the report's panel: no texel = DEAD, same size
+    assert shown.shape == png.shape[:2] + (3,)
+    assert np.all(shown[png[..., 3] == 0] == 1.0) and not np.any(np.all(shown[png[..., 3] > 0] == 1.0, axis=-1))
+
+
 def test_log_display_keeps_the_hue_and_maps_the_bounds():
     img = np.array([[[0.25, 0.5, 1.0], [2000.0, 1800.0, 1000.0], [0.0, 0.0, 0.0], [1e-9, 0, 0]]])
     disp, lo, hi = outputs.log_display(img, 0.01, 2000.0)
@@ -193,6 +251,25 @@ def test_the_levels_caption_says_where_the_cross_puts_each_face(hemisphere):
         assert "-Z at the bottom left" in caption
 
 
+def test_the_hemisphere_caption_says_where_the_layout_puts_each_side_face():
+    """HEMISPHERE_CAPTION names the side each face is folded out to ('+X below', ...): each claim
+    is checked against `hemisphere_layout` (the face drawn in the middle of that side's band)."""
+    import re
+
+    from pipelines.light import cubemap
+
+    R = 8
+    cube = cubemap.CubeMap(R)
+    index = rf.hemisphere_layout(cube)
+    claims = re.findall(r"([+-][XYZ]) (below|above|right|left|in the centre)", rf.HEMISPHERE_CAPTION)
+    assert len(claims) == 5, claims
+    where = {"below": (2 * R - 1, R), "above": (0, R), "right": (R, 2 * R - 1), "left": (R, 0),
+             "in the centre": (R, R)}
+    for face, side in claims:
+        r, c = where[side]
+        assert cubemap.FACE_NAMES[cube.texel_face[index[r, c]]] == face.lower(), (face, side)
+
+
 # -- reflectance rounds ---------------------------------------------------------------------------------------
 
 def _round(k, model, fit, held, lm=None, seconds=1.0):
@@ -206,17 +283,26 @@ def _round(k, model, fit, held, lm=None, seconds=1.0):
 PROBE_REJECTED = {  # what `solve --reflectance auto` writes when the probe is not significant (the demo)
     "model": "lambert", "mode": "auto", "chosen_round": 0,
     "decision": "lambert: a blinn-phong term fitted with the Lambertian light fixed is not significant",
-    "candidates": {"lambert": {"held_out_rmse": 0.0306, "fit_rmse": 0.0327}, "probe": {"pixels": 5580}},
-    "rounds": [_round(0, "lambert", 0.0327, 0.0306, seconds=8.0),
-               _round(1, "blinn-phong", 0.0278, 0.0297, lm={"pixels": 5580}, seconds=0.0)]}
+    "candidates": {"lambert": {"held_out_rmse": 0.0306, "fit_rmse": 0.0327},
+                   "probe": {"pixels": 5580, "fit_rmse": 0.0278, "held_out_rmse": 0.0369, "gain": 0.0014,
+                             "compared_on": "held-out rows of the probe", "lambert_rmse_same_rows": 0.036952,
+                             "ks_significant": False}},
+    "rounds": [_round(0, "lambert", 0.0327, 0.0306, seconds=8.0) | {"kind": "round"},
+               _round(1, "blinn-phong", 0.0278, 0.0369, lm={"pixels": 5580}, seconds=0.0)
+               | {"kind": "probe", "lambert_rmse_same_rows": 0.036952}]}
 
 ALTERNATED = {  # the probe accepted: light under its material, then LM rounds; round 3 kept
     "model": "blinn-phong", "mode": "auto", "chosen_round": 3, "decision": "blinn-phong: lowers the held-out error",
-    "candidates": {"lambert": {}, "probe": {}, "blinn-phong": {}},
+    "candidates": {"lambert": {}, "blinn-phong": {},
+                   "probe": {"pixels": 900, "fit_rmse": 0.07, "held_out_rmse": 0.075, "gain": 0.3,
+                             "compared_on": "held-out rows of the probe", "lambert_rmse_same_rows": 0.107,
+                             "ks_significant": True}},
     "rounds": [_round(0, "lambert", 0.10, 0.11), _round(1, "blinn-phong", 0.07, 0.08),
                _round(2, "blinn-phong", 0.05, 0.06, lm={"pixels": 900}), _round(3, "blinn-phong", 0.045, 0.055,
                                                                                lm={"pixels": 900}),
                _round(4, "blinn-phong", 0.046, 0.056, lm={"pixels": 900})]}
+for _r in ALTERNATED["rounds"]:
+    _r["kind"] = "round"
 
 
 def _xticklabels(fig, ax):
@@ -224,30 +310,56 @@ def _xticklabels(fig, ax):
     return [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
 
 
-def test_a_rejected_probe_is_not_drawn_as_a_round_of_the_light():
+def _bars(ax):
+    return [(p.get_x() + p.get_width() / 2, p.get_height()) for p in ax.patches]
+
+
+def test_a_rejected_probe_is_drawn_as_a_probe_against_lambert_on_its_rows():
     rounds = rf.reflectance_rounds(PROBE_REJECTED)
     assert [(r["round"], r["kind"], r["kept"]) for r in rounds] == [(0, "light", True), (1, "probe", False)]
-    fig, ax = rf.reflectance_axes(PROBE_REJECTED)
-    assert _xticklabels(fig, ax) == ["0", "1"]  # integer rounds, no 0.2, 0.4, ...
-    joined = [ln for ln in ax.get_lines() if len(ln.get_xdata()) > 0 and ln.get_linestyle() not in ("None", "")]
-    assert joined and all(list(ln.get_xdata()) == [0] for ln in joined), "the probe is joined to round 0's line"
-    legend = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert any(t.startswith("probe") and "5580" in t for t in legend)
-    assert any(t.startswith("kept: round 0") for t in legend)
-    assert "not kept" in " ".join(t.get_text() for t in ax.texts)
+    fig, (ax, pax) = rf.reflectance_axes(PROBE_REJECTED)
+    # the light rounds: only round 0, an integer tick; the probe is not drawn there
+    assert _xticklabels(fig, ax) == ["0"]
+    for ln in ax.get_lines():
+        assert set(np.asarray(ln.get_xdata()).tolist()) <= {0}, "the probe is drawn as a round of the light"
     assert "round 0 kept" in ax.get_title()
+    # the probe's panel: Lambert's error and the probe's on the same rows (not round 0's 3.06 %)
+    assert _xticklabels(fig, pax) == ["lambert", "blinn-phong"]
+    assert [h for _, h in _bars(pax)] == [pytest.approx(3.6952), pytest.approx(3.69)]
+    assert "not kept" in pax.get_title()
+    label = pax.get_xlabel()
+    assert "held-out rows of the probe" in label and "5580 LM pixels" in label and "gain 0.14 %" in label
+    texts = [t.get_text() for t in pax.texts]
+    assert texts == ["3.70 %", "3.69 %"]
 
 
-def test_alternation_rounds_are_integers_and_the_kept_one_is_marked():
+def test_an_accepted_probe_is_shown_beside_the_rounds_it_led_to():
     rounds = rf.reflectance_rounds(ALTERNATED)
     assert [r["kind"] for r in rounds] == ["light"] * 5 and [r["kept"] for r in rounds] == [False] * 3 + [True, False]
-    fig, ax = rf.reflectance_axes(ALTERNATED)
+    fig, (ax, pax) = rf.reflectance_axes(ALTERNATED)
     assert _xticklabels(fig, ax) == ["0", "1", "2", "3", "4"]
     joined = [ln for ln in ax.get_lines() if ln.get_linestyle() not in ("None", "")]
     assert [list(ln.get_xdata()) for ln in joined] == [[0, 1, 2, 3, 4]] * 2
     kept = [ln for ln in ax.get_lines() if (ln.get_label() or "").startswith("kept")]
     assert len(kept) == 1 and list(kept[0].get_xdata()) == [3] and list(kept[0].get_ydata()) == [pytest.approx(5.5)]
+    assert [h for _, h in _bars(pax)] == [pytest.approx(10.7), pytest.approx(7.5)]
+    assert "followed by light rounds" in pax.get_title()
+
+
+def test_rounds_without_a_probe_and_a_single_round():
+    lm_only = {k: v for k, v in ALTERNATED.items() if k != "candidates"} | {"mode": "blinn-phong"}
+    fig, (ax, pax) = rf.reflectance_axes(lm_only)
+    assert pax is None and len(fig.axes) == 1 and _xticklabels(fig, ax) == ["0", "1", "2", "3", "4"]
     assert rf.reflectance_axes({"rounds": [_round(0, "lambert", 0.1, 0.1)], "chosen_round": 0}) is None
+
+
+def test_reflectance_json_before_rounds_had_a_kind():
+    """A reflectance.json of solve version < 5 (no `kind`): its probe round is still found."""
+    old = json.loads(json.dumps(PROBE_REJECTED))
+    for r in old["rounds"]:
+        r.pop("kind")
+        r.pop("lambert_rmse_same_rows", None)
+    assert [r["kind"] for r in rf.reflectance_rounds(old)] == ["light", "probe"]
 
 
 # -- compare.png: labels clear of each other -------------------------------------------------------------------

@@ -196,16 +196,28 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
 
 force_option = click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 exposure_option = click.option("--exposure", type=float, default=None,
-                               help="PNG exposure in stops (default: automatic).")
+                               help="PNG exposure in stops [default: the photo's, its 99.5th-percentile "
+                                    "radiance white: a darker light looks darker]. Only redraws the PNG.")
 
 
-def visibility_options(f):
-    """Options of the visibility stage, shared by every command that needs it."""
+DEFAULT_R = 32  # = pipelines.controllers.visibility.DEFAULT_RESOLUTION (not imported: --help stays instant)
+R_HELP = ("Cube-map face resolution R (power of two): 3R^2 light directions with --hemisphere, 6R^2 with "
+          "--sphere.")
+
+
+def visibility_options(f=None, *, resolution_default: int | None = DEFAULT_R, default_note: str | None = None):
+    """Options of the visibility stage, shared by every command that needs it. A command whose R
+    and hemisphere come from elsewhere when not given (relight: the solve's) passes
+    resolution_default=None and says so in `default_note` (shown as the options' default)."""
+    if f is None:
+        return lambda g: visibility_options(g, resolution_default=resolution_default, default_note=default_note)
+    given = resolution_default is not None
     opts = [
-        click.option("--resolution", "-R", default=32, show_default=True, type=int,
-                     help="Cube-map face resolution R (power of two): 3R^2 light directions on the hemisphere."),
-        click.option("--hemisphere/--sphere", default=True, show_default=True,
-                     help="Upper hemisphere only (the paper) or the full sphere of light."),
+        click.option("--resolution", "-R", default=resolution_default, show_default=given, type=int,
+                     help=R_HELP + ("" if given else f" [default: {default_note}]")),
+        click.option("--hemisphere/--sphere", default=True if given else None, show_default=given,
+                     help="Upper hemisphere only (the paper) or the full sphere of light."
+                          + ("" if given else f" [default: {default_note}]")),
         click.option("--supersample", default=1, show_default=True, type=int,
                      help="k x k shadow rays per texel (fractional visibility; 1 = texel centre only)."),
         click.option("--edge-margin", default=1, show_default=True, type=int,
@@ -317,24 +329,56 @@ def visibility_cmd(obj, force, **kw):
     visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
 
 
-def material_options(f):
-    """Reflectance options shared by render, solve and compare."""
-    opts = [
-        click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
-                     help="Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30})."),
-        click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
-                     help="Reflectance model (overrides the material file)."),
-        click.option("--kd", type=(float, float, float), default=None,
-                     help="Diffuse albedo RGB (default 1 1 1; it sets the light's scale, see README)."),
-        click.option("--ks", type=(float, float, float), default=None,
-                     help="Specular RGB (default 0 0 0; solve with a fitted reflectance: the fit's start, default "
-                          "0.25 x kd)."),
-        click.option("--shininess", type=click.FloatRange(0), default=None,
-                     help="Specular exponent n (solve with a fitted reflectance: the fit's start, default 20)."),
-    ]
-    for opt in reversed(opts):
-        f = opt(f)
-    return f
+MATERIAL_JSON = "Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30})"
+MATERIAL_HELP = {  # option -> help, per meaning of the material options
+    "given": {  # render: the material rendered
+        "material_file": f"{MATERIAL_JSON}; the options below override its fields.",
+        "model": "Reflectance model [default: the file's, else lambert].",
+        "kd": "Diffuse albedo RGB [default: 1 1 1: the light holds the albedo, README: Conventions].",
+        "ks": "Specular RGB [default: 0 0 0].",
+        "shininess": "Specular exponent n [default: 1].",
+    },
+    "solve": {  # solve: the material of the light solve, or the reflectance fit's start
+        "material_file": f"{MATERIAL_JSON}: the material the light is solved under (implies --reflectance given).",
+        "model": "Reflectance model of the material (implies --reflectance given; see --reflectance).",
+        "kd": "Diffuse albedo RGB: sets the light's scale [default: 1 1 1: the light holds the albedo, README: "
+              "Conventions].",
+        "ks": "Specular RGB; with a fitted reflectance (--reflectance auto or a model name) the fit's start "
+              "[default: 0 0 0; the fit starts at 0.25 x kd].",
+        "shininess": "Specular exponent n; with a fitted reflectance the fit's start [default: 1; the fit starts at "
+                     "20].",
+    },
+    "fitted": {  # compare, relight, insert: the scene's material, by default the one solve fitted
+        "material_file": f"{MATERIAL_JSON} instead of the reflectance solve fitted (out/reflectance.json). Any "
+                         "material option replaces the fitted material as a whole: fields not given are kd 1 1 1, "
+                         "ks 0 0 0, n 1, lambert.",
+        "model": "Reflectance model [default: the fitted one (out/reflectance.json)].",
+        "kd": "Diffuse albedo RGB [default: the fitted kd (out/reflectance.json)].",
+        "ks": "Specular RGB [default: the fitted ks (out/reflectance.json)].",
+        "shininess": "Specular exponent n [default: the fitted n (out/reflectance.json)].",
+    },
+}
+
+
+def material_options(role: str):
+    """Reflectance options (--material, --model, --kd, --ks, --shininess) with the help of their
+    meaning in a command: 'given' (render), 'solve', 'fitted' (compare, relight, insert)."""
+    text = MATERIAL_HELP[role]
+
+    def deco(f):
+        opts = [
+            click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
+                         help=text["material_file"]),
+            click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
+                         help=text["model"]),
+            click.option("--kd", type=(float, float, float), default=None, help=text["kd"]),
+            click.option("--ks", type=(float, float, float), default=None, help=text["ks"]),
+            click.option("--shininess", type=click.FloatRange(0), default=None, help=text["shininess"]),
+        ]
+        for opt in reversed(opts):
+            f = opt(f)
+        return f
+    return deco
 
 
 def _material(kw, given: set | None = None):
@@ -355,8 +399,8 @@ def _material_or_fitted(kw, scene):
 
 @_command("render")
 @click.option("--light", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Lat-long light (EXR/HDR, DESIGN convention: row 0 = zenith, +Z up).")
-@material_options
+              help="Lat-long light (EXR/HDR; docs/DESIGN.md §2: H x 2H, row 0 = the zenith, +Z up).")
+@material_options("given")
 @exposure_option
 @visibility_options
 @force_option
@@ -434,7 +478,7 @@ def reflectance_options(f):
 @click.option("--sh-nonnegative", is_flag=True, help="sh: constrain the light to be >= 0 at every texel.")
 @solve_options
 @reflectance_options
-@material_options
+@material_options("solve")
 @exposure_option
 @visibility_options
 @force_option
@@ -459,7 +503,7 @@ def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_
 
 @_command("compare")
 @solve_options
-@material_options
+@material_options("fitted")
 @visibility_options
 @force_option
 @click.pass_obj
@@ -481,11 +525,13 @@ def compare_cmd(obj, force, **kw):
 
 @_command("relight")
 @click.option("--light", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="A lat-long light (EXR/HDR, DESIGN convention) [default: the light solve recovered].")
+              help="A lat-long light (EXR/HDR; docs/DESIGN.md §2: H x 2H, row 0 = the zenith, +Z up) "
+                   "[default: the light solve recovered].")
 @click.option("--rotate", type=float, default=0.0, show_default=True,
               help="Turn the light about +Z by this many degrees (azimuth phi -> phi + DEG).")
 @click.option("--light-exposure", type=float, default=0.0, show_default=True,
-              help="Scale the light by 2^STOPS.")
+              help="Scale the light by 2^STOPS (the PNG keeps the photo's exposure: -1 looks one stop "
+                   "darker).")
 @click.option("--view", "view_pose", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Render from another view: its pose.json (visibility for it is computed once and cached).")
 @click.option("--view-camera", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -496,27 +542,31 @@ def compare_cmd(obj, force, **kw):
               help="Where to compare (white = compare) [default: every rendered pixel].")
 @click.option("--name", default="relight", show_default=True,
               help="Output names: out/NAME.exr, NAME.png, NAME_residual.png, NAME.json.")
-@material_options
+@material_options("fitted")
 @exposure_option
-@visibility_options
+@visibility_options(resolution_default=None, default_note="the solve's, with the recovered light; "
+                    f"{DEFAULT_R} and the hemisphere with --light")
 @force_option
 @click.pass_context
 def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, name, exposure,
                 force, **kw):
     """Render the scene under the recovered light (or any lat-long light, turned and scaled), from the
     photo's view or another one, with the fitted reflectance -> out/NAME.exr/png and its error."""
-    from click.core import ParameterSource
-
     from .stages.relight import RelightOptions, relight_stage
 
     obj = ctx.obj
     scene = scene_folder(obj["scene"])
     material, material_path = _material_or_fitted(kw, scene)
-    solved = scene.out / "coefficients.h5"
-    if light is None and ctx.get_parameter_source("resolution") != ParameterSource.COMMANDLINE and solved.is_file():
+    solved_cube = None
+    if light is None and (kw["resolution"] is None or kw["hemisphere"] is None) \
+            and (scene.out / "coefficients.h5").is_file():
         from .scene import solved_light
 
-        kw["resolution"] = solved_light(scene)[1].resolution
+        solved_cube = solved_light(scene)[1]
+    if kw["resolution"] is None:  # not given (command line or scene.toml): the solve's R, else the default
+        kw["resolution"] = solved_cube.resolution if solved_cube is not None else DEFAULT_R
+    if kw["hemisphere"] is None:
+        kw["hemisphere"] = solved_cube.hemisphere if solved_cube is not None else True
     opts = RelightOptions(light, rotate, light_exposure, view_pose, view_camera, reference, reference_mask, exposure,
                           name)
     relight_stage(scene, _vis_opts(kw), opts, material, material_path, obj["console"], force, obj["lock_wait"])
@@ -545,7 +595,7 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
               help="The scene's cached visibility to reuse (the object's own shadow rays are always cast).")
 @click.option("--name", default="insert", show_default=True, help="Output names: out/NAME.exr/png, NAME_render.exr, "
               "NAME_shadow.png, NAME.json.")
-@material_options
+@material_options("fitted")
 @exposure_option
 @force_option
 @click.pass_obj
@@ -571,8 +621,10 @@ def insert_cmd(obj, **kw):
 @click.option("--light", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A lat-long light to convert [default: the light solve recovered].")
 @click.option("--height", type=int, default=None,
-              help="Rows of the lat-long exports [default: 4 x the cube map's R, at least 64].")
-@click.option("--face-size", type=int, default=None, help="Cube face size [default: the solve's R].")
+              help="Rows of the lat-long exports of the recovered light [default: 4 x the solve's R, at least "
+                   "64]; a --light file keeps its own rows.")
+@click.option("--face-size", type=int, default=None,
+              help="Cube face size of the OpenGL faces [default: the solve's R; 64 with --light].")
 @force_option
 @click.pass_obj
 def export_cmd(obj, formats, light, height, face_size, force):

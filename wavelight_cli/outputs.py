@@ -34,10 +34,25 @@ def jsonable(value):
     return value
 
 
+CROSS_PREVIEW = "the cube cross (row block 0: +Z; 1: +X, +Y, -X, -Y; 2: -Z) cropped to its texels; transparent: no texel"
+
+
+def cross_preview(display: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(3R, 4R, 3) display values of a cube cross -> RGBA cropped to the rows and columns that hold
+    texels (a hemisphere keeps the top 1.5R rows), transparent (A = 0) where the layout has no
+    texel: the unused area reads as background, not as a dark part of the light."""
+    rows, cols = np.nonzero(valid)
+    crop = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    rgba = np.concatenate([np.asarray(display, np.float64), valid[..., None].astype(np.float64)], axis=-1)[crop]
+    rgba[rgba[..., 3] == 0, :3] = 0.0
+    return rgba
+
+
 def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int | None = None,
                 unobservable: np.ndarray | None = None) -> list[Path]:
     """A cube-map light as <stem>_latlong.exr (exchange format), <stem>_cross.exr and a preview PNG
-    of the cross (texels outside the layout dark grey, unobservable texels dark magenta).
+    of the cross (`cross_preview`: cropped, transparent where no texel is; unobservable texels dark
+    magenta).
 
     The preview is log tone-mapped (`log_display`): a sun does not push the sky to black. The
     radiance at black and at white is in the PNG's text (`wavelight:log_black`, `wavelight:log_white`)."""
@@ -50,26 +65,39 @@ def write_light(out_dir: Path, stem: str, texels: np.ndarray, cube, height: int 
     cross, valid = cubemap.cross_image(texels, cube)
     images.write_exr(paths[1], cross)
     preview, lo, hi = log_display(cross)
-    preview[~valid] = 0.15
     if unobservable is not None and np.any(unobservable):
         marked, _ = cubemap.cross_image(np.asarray(unobservable, np.float64), cube)
         preview[marked > 0.5] = (0.35, 0.0, 0.35)
-    write_display_png(paths[2], upscale(preview), {
+    write_display_png(paths[2], upscale(cross_preview(preview, valid)), {
         "wavelight:display": "log: brightness proportional to log of the brightest channel's radiance",
-        "wavelight:log_black": f"{lo:.6g}", "wavelight:log_white": f"{hi:.6g}"})
+        "wavelight:log_black": f"{lo:.6g}", "wavelight:log_white": f"{hi:.6g}", "wavelight:layout": CROSS_PREVIEW})
     return paths
 
 
-def log_range(values: np.ndarray, decades: float = 4.0, percentile: float = 2.0) -> tuple[float, float]:
+def write_cross_heat_png(path: Path, values: np.ndarray, cube, scale: float, what: str, units: str) -> Path:
+    """Per-texel values (N,) as a heat map on the cube cross (`cross_preview`), its scale in the
+    PNG's text as `write_heat_png` records it."""
+    from pipelines.light import cubemap
+
+    cross, valid = cubemap.cross_image(np.asarray(values, np.float64), cube)
+    return write_display_png(path, upscale(cross_preview(heat_map(cross, scale), valid)), {
+        "wavelight:heat_scale": f"{scale:.6g}", "wavelight:heat_what": what, "wavelight:heat_units": units,
+        "wavelight:layout": CROSS_PREVIEW})
+
+
+def log_range(values: np.ndarray, decades: float = 6.0, percentile: float = 2.0,
+              margin: float = 4.0) -> tuple[float, float]:
     """(black, white) radiance of `log_display` for these values: white at the brightest channel's
-    maximum, black at the `percentile` of the positive values but at most `decades` below white."""
+    maximum, black `margin` times below the `percentile` of the positive values (a uniform sky
+    shows two stops above black, not at it), that percentile taken at most `decades` below white
+    (specks of numerical dust stay black)."""
     m = np.clip(np.nan_to_num(np.asarray(values, np.float64), nan=0.0, posinf=0.0), 0.0, None)
     m = m.max(axis=-1) if m.ndim > 1 and m.shape[-1] == 3 else m
     pos = m[m > 0]
     if pos.size == 0:
         return 0.1, 1.0
     hi = float(pos.max())
-    lo = max(float(np.percentile(pos, percentile)), hi * 10.0 ** -decades)
+    lo = max(float(np.percentile(pos, percentile)), hi * 10.0 ** -decades) / margin
     if not lo < hi:
         lo = hi / 10.0
     return lo, hi
@@ -179,3 +207,105 @@ def write_residual(path: Path, values: np.ndarray, reference: np.ndarray, pixels
     scale = 0.1 * float(np.percentile(np.abs(reference[ok]).mean(axis=1), 95)) if ok.any() else 1.0
     return write_heat_png(path, heat, scale, "|render - reference| (mean of R, G, B); white = 10 % of the "
                           "reference's 95th-percentile radiance", "linear radiance")
+
+
+# -- renders of a view: EXR with alpha, PNG at the photo's exposure -------------------------------------------
+
+PHOTO_PERCENTILE = 99.5  # the photo's preview: this percentile of its positive radiance is white
+
+
+def photo_exposure(photo: np.ndarray) -> float:
+    """Stops that map the photo's 99.5th-percentile radiance to white: the exposure of the photo's
+    preview (`images.tonemap(photo)`), used for every render of the scene, so that a render under
+    a light one stop darker looks one stop darker."""
+    px = np.nan_to_num(np.asarray(photo, np.float64), nan=0.0, posinf=0.0)
+    pos = px[px > 0]
+    return -float(np.log2(np.percentile(pos, PHOTO_PERCENTILE))) if pos.size else 0.0
+
+
+def view_image(values: np.ndarray, pixels: np.ndarray, shape, cover: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 4) linear RGBA of a render of the used pixels (P, 3) at `pixels` (P, 2: rows, cols).
+
+    A = 1 where rendered. `cover` (H, W) bool: the pixels the view's mesh covers within its mask;
+    those the render left out (the edge margin: pixels near silhouettes and depth jumps, whose
+    visibility is not computed) take the value of the nearest rendered pixel, with A = 1. Every
+    other pixel (off the mesh, masked out) is RGB = A = 0: transparent, as compositing tools read
+    an EXR's alpha."""
+    from scipy import ndimage
+
+    H, W = shape
+    rgba = np.zeros((H, W, 4), np.float32)
+    rgba[pixels[:, 0], pixels[:, 1], :3] = values
+    rgba[pixels[:, 0], pixels[:, 1], 3] = 1.0
+    if cover is not None and len(pixels):
+        rendered = rgba[..., 3] > 0
+        fill = np.asarray(cover, bool) & ~rendered
+        if fill.any():
+            _, (rows, cols) = ndimage.distance_transform_edt(~rendered, return_indices=True)
+            rgba[fill, :3] = rgba[rows[fill], cols[fill], :3]
+            rgba[fill, 3] = 1.0
+    return rgba
+
+
+def write_view(out_dir: Path, stem: str, values: np.ndarray, pixels: np.ndarray, shape,
+               photo: np.ndarray | None = None, exposure: float | None = None,
+               exposure_photo: np.ndarray | None = None, cover: np.ndarray | None = None) -> list[Path]:
+    """A render of the used pixels -> [<stem>.exr, <stem>.png] (README: Outputs).
+
+    EXR: `view_image` (linear RGBA: the render, its edge margin on the mesh filled from the
+    nearest rendered pixel, transparent elsewhere). PNG: with `photo` (the render is of the
+    photo's view) the photo where the EXR is transparent; without it, RGBA with those pixels
+    transparent. Its exposure: `exposure` stops when given, else the photo's (`photo_exposure` of
+    `exposure_photo`, else of `photo`), else automatic (the render's 99.5th percentile white); the
+    PNG's text says which (`wavelight:exposure_stops`, `wavelight:exposure`)."""
+    from pipelines.io import images
+
+    rgba = view_image(values, pixels, shape, cover)
+    exr = images.write_exr(Path(out_dir) / f"{stem}.exr", rgba)
+    return [exr, view_png(Path(out_dir) / f"{stem}.png", rgba, photo, exposure, exposure_photo)]
+
+
+def read_rgba(path: Path) -> np.ndarray:
+    """(H, W, 4) float32 of an EXR written by `write_view` (an RGB file gets A = 1 where any
+    channel is non-zero: how renders were written before they had alpha)."""
+    import OpenImageIO as oiio
+
+    from pipelines.errors import InputError
+
+    buf = oiio.ImageBuf(str(path))
+    px = buf.get_pixels(oiio.FLOAT)
+    if buf.has_error or px is None:
+        raise InputError(f"cannot read the render ({(buf.geterror().splitlines() or [''])[0]})", path,
+                         "rerun the command with --force")
+    px = np.asarray(px, np.float32)
+    if px.ndim == 2:
+        px = px[..., None]
+    if px.shape[2] >= 4:
+        return np.ascontiguousarray(px[..., :4])
+    rgb = np.repeat(px, 3, axis=2) if px.shape[2] == 1 else px[..., :3]
+    return np.concatenate([rgb, (rgb.max(axis=2, keepdims=True) > 0).astype(np.float32)], axis=2)
+
+
+def view_png(path: Path, rgba: np.ndarray, photo: np.ndarray | None = None, exposure: float | None = None,
+             exposure_photo: np.ndarray | None = None) -> Path:
+    """The PNG of `write_view` from its RGBA render (also what an `--exposure` change redraws)."""
+    from pipelines.io import images
+
+    rgb, alpha = rgba[..., :3].astype(np.float64), rgba[..., 3] > 0.5
+    ref = exposure_photo if exposure_photo is not None else photo
+    if exposure is not None:
+        stops, how = float(exposure), "--exposure"
+    elif ref is not None:
+        stops, how = photo_exposure(ref), "the photo's: its 99.5th-percentile radiance is white"
+    else:
+        pos = rgb[alpha][rgb[alpha] > 0]
+        stops = -float(np.log2(np.percentile(pos, PHOTO_PERCENTILE))) if pos.size else 0.0
+        how = "automatic: the render's 99.5th-percentile radiance is white"
+    text = {"wavelight:exposure_stops": f"{stops:.6g}", "wavelight:exposure": how}
+    if photo is not None:
+        shown = np.where(alpha[..., None], rgb, np.asarray(photo, np.float64))
+        text["wavelight:unrendered"] = "the photo"
+        return write_display_png(path, images.tonemap(shown, stops), text)
+    text["wavelight:unrendered"] = "transparent"
+    display = np.concatenate([images.tonemap(rgb, stops), alpha[..., None].astype(np.float64)], axis=2)
+    return write_display_png(path, display, text)

@@ -95,6 +95,25 @@ def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> Vie
     return View(camera, pose, None, f"view-{digest}")
 
 
+def mesh_coverage(view: View, camera, mesh, backend):
+    """(H, W) bool: the pixels of `view` whose centre ray hits the mesh and that its mask keeps
+    (what a render covers when no edge margin is left out; `outputs.view_image` fills that margin)."""
+    import numpy as np
+
+    from pipelines.geometry.camera import pixel_samples
+    from pipelines.io import images
+    from pipelines.io.scene_files import read_pose
+
+    samples, _ = pixel_samples(camera, read_pose(view.pose), mesh, backend, None, edge_margin=-1)
+    cover = np.zeros((camera.height, camera.width), bool)
+    cover[samples.pixel[:, 0], samples.pixel[:, 1]] = True
+    if view.mask is not None:
+        mask = images.read_mask(view.mask)
+        if mask.shape == cover.shape:
+            cover &= mask
+    return cover
+
+
 def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
     """(path, `LoadedImage`) of the scene's photo, checked against the camera's size. NaN/Inf
     pixels that mask.png leaves out are not refused (they read as 0)."""

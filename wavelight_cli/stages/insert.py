@@ -13,11 +13,12 @@ from pipelines.errors import InputError, OptionError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import heat_map, write_json
+from ..outputs import photo_exposure, write_heat_png, write_json
 from ..scene import SceneFiles, load_photo, material_from_options, require, solved_light
 from .visibility import visibility_stage
 
-VERSION = 2
+VERSION = 3  # 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
+SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,7 @@ class InsertOptions:
     light: Path | None = None
     resolution: int | None = None
     supersample: int = 1
-    exposure: float | None = None
+    exposure: float | None = None  # PNG exposure in stops (None: the photo's, `outputs.photo_exposure`)
     name: str = "insert"
 
     def check(self) -> None:
@@ -74,6 +75,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     else:
         _, solved_cube, _ = solved_light(scene)
         resolution = opts.resolution or solved_cube.resolution
+    png_exposure = opts.exposure if opts.exposure is not None else photo_exposure(photo.pixels)
     cache = SceneCache(scene.root)
     name = "insert" if opts.name == "insert" else f"insert-{opts.name}"
     out = scene.out
@@ -118,10 +120,11 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
                 raise InputError(f"the object at {tuple(opts.at)} is not in the photo", None,
                                  "place it where the camera sees it (--at, world coordinates)")
             outputs = [images.write_exr(out / f"{opts.name}.exr", r.composite),
-                       images.write_png(out / f"{opts.name}.png", r.composite, opts.exposure),
+                       images.write_png(out / f"{opts.name}.png", r.composite, png_exposure),
                        images.write_exr(out / f"{opts.name}_render.exr", r.with_object),
-                       images.write_png(out / f"{opts.name}_shadow.png", heat_map(np.clip(-r.shadow, 0, None), 0.5),
-                                        already_display=True)]
+                       write_heat_png(out / f"{opts.name}_shadow.png", np.clip(-r.shadow, 0, None), SHADOW_WHITE,
+                                      "relative darkening the object casts on the known geometry",
+                                      "fraction of the radiance without the object")]
             summary = {"object": opts.object, "at": list(opts.at), "object_pixels": int(r.object_mask.sum()),
                        "shadowed_pixels_5pct": int((r.shadow < -0.05).sum()), "darkest_shadow": float(r.shadow.min()),
                        "resolution": cube.resolution, "light": "recovered" if opts.light is None else str(opts.light),
@@ -133,7 +136,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
 
         def redisplay() -> list:
             img = images.read_image(out / f"{opts.name}.exr").pixels
-            return [images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+            return [images.write_png(out / f"{opts.name}.png", img, png_exposure)]
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of(name) or {}

@@ -14,11 +14,11 @@ from pipelines.errors import InputError, OptionError
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import write_json, write_residual
-from ..scene import SceneFiles, load_photo, other_view, photo_view, require, solved_light
+from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
+from ..scene import SceneFiles, load_photo, mesh_coverage, other_view, photo_view, require, solved_light
 from .visibility import visibility_stage
 
-VERSION = 2
+VERSION = 3  # 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class RelightOptions:
     view_camera: Path | None = None  # and its camera.json (default: the scene's)
     reference: Path | None = None  # an image to compare with (default: the photo, for its own view and light)
     reference_mask: Path | None = None  # where to compare (white = compare)
-    exposure: float | None = None  # PNG exposure in stops (None = automatic)
+    exposure: float | None = None  # PNG exposure in stops (None = the photo's, `outputs.photo_exposure`)
     name: str = "relight"
 
     def check(self) -> None:
@@ -56,6 +56,19 @@ def _light(scene: SceneFiles, opts: RelightOptions, cube):
     return light * 2.0 ** opts.light_exposure, "recovered"
 
 
+def _display_photos(scene: SceneFiles, opts: RelightOptions, camera, loaded=None):
+    """(the photo behind the render: the scene's photo for its own view, else None; the photo whose
+    exposure the PNG takes: the scene's, None without one). `loaded`: the photo when already read."""
+    from pipelines.io import images
+
+    if scene.image is None:
+        return None, None
+    if opts.view_pose is None:
+        photo = loaded if loaded is not None else load_photo(scene, camera)[1]
+        return photo.pixels, photo.pixels
+    return None, images.read_image(scene.image).pixels
+
+
 def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightOptions, material, material_path,
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     from pipelines.controllers.render import render_view
@@ -63,7 +76,6 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
     from pipelines.io import images, visibility_file
     from pipelines.io.scene_files import load_mesh, read_camera
     from pipelines.metrics import versus_photo
-    from pipelines.model import render as rd
 
     opts.check()
     if opts.light is not None:
@@ -92,7 +104,8 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
         if opts.light is None:
             upstream["solve"] = cache.key_of("solve") or "none"
         inputs = {"light": opts.light if opts.light is not None else scene.out / "coefficients.h5",
-                  "material": material_path, "reference": reference, "reference_mask": mask_path}
+                  "material": material_path, "reference": reference, "reference_mask": mask_path,
+                  "photo": scene.image}  # the PNG's backdrop and exposure
         params = {"rotate": opts.rotate, "light_exposure": opts.light_exposure, "material": material.to_json(),
                   "view": view.name}
         stage = Stage(name, VERSION, params, inputs, upstream, {"exposure": opts.exposure})
@@ -114,10 +127,11 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
                                          f"{camera.width}x{camera.height}", mask_path, "use a mask of the view's size")
             data = visibility_file.read_visibility(vis.path)
             light, source = _light(scene, opts, data.cube)
-            values, _ = render_view(data, light, material, raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend))
-            img = rd.pixels_to_image(values, data.samples.pixel, camera.height, camera.width)
-            outputs = [images.write_exr(out / f"{opts.name}.exr", img),
-                       images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend)
+            values, _ = render_view(data, light, material, backend)
+            backdrop, scale_ref = _display_photos(scene, opts, camera, ref if ref_path == scene.image else None)
+            outputs = write_view(out, opts.name, values, data.samples.pixel, (camera.height, camera.width), backdrop,
+                                 opts.exposure, scale_ref, mesh_coverage(view, camera, backend.mesh, backend))
             summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
                        "view": view.name, "material": material.to_json(), "pixels": int(len(values)),
                        "resolution": data.cube.resolution}
@@ -150,8 +164,9 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             return Ran(outputs, summary)
 
         def redisplay() -> list:
-            img = images.read_image(out / f"{opts.name}.exr").pixels
-            return [images.write_png(out / f"{opts.name}.png", img, opts.exposure)]
+            backdrop, scale_ref = _display_photos(scene, opts, camera)
+            return [view_png(out / f"{opts.name}.png", read_rgba(out / f"{opts.name}.exr"), backdrop, opts.exposure,
+                             scale_ref)]
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of(name) or {}

@@ -9,11 +9,11 @@ from pipelines.controllers.visibility import VisibilityOptions
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import write_light, write_residual
-from ..scene import SceneFiles, load_photo, require
+from ..outputs import read_rgba, view_png, write_light, write_residual, write_view
+from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view, require
 from .visibility import visibility_stage
 
-VERSION = 3
+VERSION = 4  # 4: render.exr has alpha, render.png the photo where nothing was rendered
 
 
 def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Path, material, exposure: float | None,
@@ -24,7 +24,6 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
     from pipelines.io.scene_files import load_mesh, read_camera
     from pipelines.light import cubemap
     from pipelines.metrics import versus_photo
-    from pipelines.model import render as rd
 
     light_path = require(Path(light_path), "pass a lat-long EXR/HDR with --light")
     camera = read_camera(scene.camera)
@@ -42,8 +41,9 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
             light = cubemap.latlong_to_cube(env, data.cube)
             backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend)
             values, _ = render_view(data, light, material, backend)
-            img = rd.pixels_to_image(values, data.samples.pixel, camera.height, camera.width)
-            outputs = [images.write_exr(out / "render.exr", img), images.write_png(out / "render.png", img, exposure)]
+            outputs = write_view(out, "render", values, data.samples.pixel, (camera.height, camera.width),
+                                 None if photo is None else photo.pixels, exposure,
+                                 cover=mesh_coverage(photo_view(scene), camera, backend.mesh, backend))
             outputs += write_light(out, "render_light", light, data.cube)
             summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
             residual = out / "render_residual.png"
@@ -65,6 +65,7 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
             return Ran(outputs, summary)
 
         def redisplay() -> list:
-            return [images.write_png(out / "render.png", images.read_image(out / "render.exr").pixels, exposure)]
+            return [view_png(out / "render.png", read_rgba(out / "render.exr"), None if photo is None else photo.pixels,
+                             exposure)]
 
         return run_stage(cache, stage, console, force, work, redisplay)

@@ -247,24 +247,38 @@ def _reflectance(doc: Doc, refl: dict, made: dict):
     s.p(f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, n {refl.get('n')}, "
         f"ks/kd {refl.get('ks_over_kd')}. Decision: {refl.get('decision', '–')}.")
     rounds = figs.reflectance_rounds(refl)
+    probe = figs.probe_result(refl)
+    probe_text = ""
+    if probe is not None:
+        probe_text = (f"The probe (`--reflectance auto`) fits a {probe['model']} term by LM with round 0's light "
+                      f"fixed, on {probe['pixels']} pixels; no light is solved for it, so its errors are over its own "
+                      f"rows: on the {probe['compared_on']} it has {_pct(probe['error'])} against Lambert's "
+                      f"{_pct(probe['lambert'])} on the same rows"
+                      + (f" (gain {100 * probe['gain']:.2f} %)" if probe["gain"] is not None else "")
+                      + (". The light rounds followed from its material." if probe["followed"] else
+                         "; it was not kept."))
     if "reflectance" in made:
-        caption = ("Relative RMSE per round; the ring marks the round kept (reflectance.json: chosen_round "
-                   f"{refl.get('chosen_round')}).")
-        probes = [r for r in rounds if r["kind"] == "probe"]
-        if probes:
-            p = probes[0]
-            caption += (f" Round {p['round']} is the probe: reflectance fitted by LM with round 0's light fixed, on "
-                        f"{p['pixels']} pixels (its errors are over those pixels); it was "
-                        f"{'kept' if p['kept'] else 'not kept'}.")
+        caption = ("Left: relative RMSE per light round; the ring marks the round kept (reflectance.json: "
+                   f"chosen_round {refl.get('chosen_round')}).")
+        if probe is not None:
+            caption += " Right: t" + probe_text[1:]
         s.fig(made["reflectance"].rel, "reflectance rounds", caption)
+    elif probe_text:
+        s.p(probe_text)
     if rounds:
         what = {"light": "light solved under this material", "probe": "probe (LM, light of round 0 fixed)"}
+
+        def held(r):
+            if r["kind"] == "probe" and r["lambert_same_rows"] is not None:
+                return f"{_pct(r['held_out_rmse'])} (Lambert on these rows: {_pct(r['lambert_same_rows'])})"
+            return _pct(r["held_out_rmse"])
+
         s.table(["round", "what", "material", "fit", "held-out", "kept"],
-                [[str(r["round"]), what[r["kind"]],
+                [[str(r["round"]) if r["kind"] == "light" else "probe", what[r["kind"]],
                   f"{r['model']} kd {_rgb(r['material'].get('kd'))}"
                   + (f", ks {_rgb(r['material'].get('ks'))}, n {_num(r['material'].get('n'), '.3g')}"
                      if r["model"] != "lambert" else ""),
-                  _pct(r["fit_rmse"]), _pct(r["held_out_rmse"]), "**kept**" if r["kept"] else "not kept"]
+                  _pct(r["fit_rmse"]), held(r), "**kept**" if r["kept"] else "not kept"]
                  for r in rounds], "rlllrl")
 
 

@@ -16,14 +16,14 @@ import numpy as np
 
 from pipelines.io.files import atomic_output
 
-from ..outputs import heat_colours, log_colours, log_display, log_range, read_png_text
+from ..outputs import heat_colours, log_colours, log_display, log_range, photo_exposure, read_png_text, read_rgba
 
 DEAD = (1.0, 1.0, 1.0)  # figure pixels that hold no texel
 OUTLINE = (0.1, 0.9, 0.3)  # the tree's leaf boundaries
 UNOBSERVABLE = (0.6, 0.0, 0.6)
 OBSERVABILITY_NOTE = "sqrt(G_ii / max G_ii)"
-# `wavelight insert` draws NAME_shadow.png as heat_map(relative darkening, 0.5) without recording
-# the scale (wavelight_cli/stages/insert.py); used when the PNG's text does not say.
+# `wavelight insert` draws NAME_shadow.png as heat_map(relative darkening, 0.5); insert stage
+# version 2 did not record the scale in the PNG's text: used when the text does not say.
 INSERT_SHADOW_WHITE = 0.5
 
 
@@ -76,12 +76,6 @@ def _read_display(path: Path) -> np.ndarray | None:
     from pipelines.io import images
 
     return images.read_image(path, linear=True).pixels if path.is_file() else None
-
-
-def _read_linear(path: Path) -> np.ndarray | None:
-    from pipelines.io import images
-
-    return images.read_image(path).pixels if path.is_file() else None
 
 
 def heat_scale(path: Path, default: float | None = None) -> tuple[float | None, str, str]:
@@ -145,20 +139,22 @@ def log_ticks(lo: float, hi: float) -> list[float]:
 # -- photo, relit, residual, observability -----------------------------------------------------------------
 
 def photo_and_relit(out: Path, solve: dict) -> tuple[np.ndarray | None, np.ndarray | None, float | None]:
-    """(photo, relit) as display images at one exposure (the photo's 99.5th percentile white), and
-    that exposure in stops; None for what is not on disk."""
+    """(photo, relit) as display images at one exposure (the photo's: `outputs.photo_exposure`, as
+    relit.png), and that exposure in stops; None for what is not on disk. The relit view shows the
+    photo where nothing was rendered (relit.exr's alpha), as relit.png does."""
     from pipelines.io import images
 
-    relit = _read_linear(out / "relit.exr")
+    rgba = read_rgba(out / "relit.exr") if (out / "relit.exr").is_file() else None
     photo = None
     name = solve.get("photo")
     if name and (out.parent / name).is_file():
         photo = images.read_image(out.parent / name).pixels
-    ref = photo if photo is not None else relit
-    if ref is None:
+    if rgba is None and photo is None:
         return None, None, None
-    scale = float(np.percentile(ref[ref > 0], 99.5)) if np.any(ref > 0) else 1.0
-    exposure = -float(np.log2(scale))
+    relit = None if rgba is None else rgba[..., :3]
+    if relit is not None and photo is not None and photo.shape == relit.shape:
+        relit = np.where(rgba[..., 3:] > 0.5, relit, photo)
+    exposure = photo_exposure(photo if photo is not None else relit)
     show = lambda img: None if img is None else images.tonemap(img, exposure)  # noqa: E731
     return show(photo), show(relit), exposure
 
@@ -169,12 +165,20 @@ def crop_to(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def observability_image(out: Path, cube) -> np.ndarray | None:
-    """out/observability.png (an enlarged cross) cropped to the cross' texels."""
+    """out/observability.png (an enlarged cross) cropped to the cross' texels, DEAD where no texel
+    is (the PNG is already cropped, transparent there: `outputs.cross_preview`; an older one is the
+    whole cross, cropped here)."""
     from pipelines.light import cubemap
 
-    img = _read_display(out / "observability.png")
-    if img is None:
+    path = out / "observability.png"
+    if not path.is_file():
         return None
+    rgba = read_rgba(path)
+    if read_png_text(path).get("wavelight:layout"):
+        img = rgba[..., :3].astype(np.float64)
+        img[rgba[..., 3] < 0.5] = DEAD
+        return img
+    img = _read_display(path)
     _, valid = cubemap.cross_image(np.zeros(cube.n_texels), cube)
     k = img.shape[1] // valid.shape[1]
     if k < 1 or img.shape[0] != k * valid.shape[0]:
@@ -446,57 +450,76 @@ def levels_figure(out: Path, dest: Path | None) -> Figure | None:
 
 def reflectance_rounds(refl: dict) -> list[dict]:
     """reflectance.json's rounds with what each was: `light` (a light solved under the round's
-    material) or `probe` (auto mode's LM fit with the round-0 light fixed: no light of its own, its
-    errors over the LM's pixels), and whether it is the round kept (`chosen_round`)."""
+    material) or `probe` (auto mode's LM fit with round 0's light fixed: no light of its own, its
+    errors over the probe's rows, `lambert_same_rows` Lambert's error over the same rows), and
+    whether it is the round kept (`chosen_round`). Rounds without `kind` (reflectance.json before
+    solve version 5): a probe is the auto round 1 with an LM and no light."""
     rounds = refl.get("rounds") or []
     chosen = refl.get("chosen_round")
-    probe = refl.get("mode") == "auto" and "probe" in (refl.get("candidates") or {})
+    old_probe = refl.get("mode") == "auto" and "probe" in (refl.get("candidates") or {})
     rows = []
     for r in rounds:
-        kind = "probe" if probe and r.get("round") == 1 and "lm" in r else "light"
+        kind = r.get("kind")
+        if kind is None:
+            kind = "probe" if old_probe and r.get("round") == 1 and "lm" in r and not r.get("light_seconds") else "light"
+        kind = "probe" if kind == "probe" else "light"
         rows.append({"round": int(r.get("round", len(rows))), "kind": kind, "kept": r.get("round") == chosen,
                      "model": (r.get("material") or {}).get("model"), "material": r.get("material") or {},
                      "fit_rmse": r.get("fit_rmse"), "held_out_rmse": r.get("held_out_rmse"),
+                     "lambert_same_rows": r.get("lambert_rmse_same_rows"),
                      "pixels": (r.get("lm") or {}).get("pixels")})
     return rows
 
 
+def probe_result(refl: dict) -> dict | None:
+    """auto mode's probe (reflectance.json: candidates.probe, and its round when it was not
+    followed): the model, its error and Lambert's over the same rows (`compared_on`), the gain, the
+    LM's rows, and whether the alternation followed it. None without a probe."""
+    cand = (refl.get("candidates") or {}).get("probe")
+    if refl.get("mode") != "auto" or not isinstance(cand, dict):
+        return None
+    probe_rounds = [r for r in reflectance_rounds(refl) if r["kind"] == "probe"]
+    held = "held" in str(cand.get("compared_on", "held-out"))
+    error = cand.get("held_out_rmse") if held else cand.get("fit_rmse")
+    model = probe_rounds[0]["model"] if probe_rounds else next(
+        (m for m in refl["candidates"] if m not in ("lambert", "probe")), "specular")
+    return {"model": model, "error": error, "lambert": cand.get("lambert_rmse_same_rows"),
+            "compared_on": cand.get("compared_on", "the probe's rows"), "gain": cand.get("gain"),
+            "pixels": cand.get("pixels"), "significant": cand.get("ks_significant"),
+            "followed": not probe_rounds}
+
+
 def reflectance_axes(refl: dict):
-    """(figure, axes) of the rounds: error per round (integers), the kept round starred, a probe
-    that was not kept drawn apart (hollow, unjoined). None with fewer than two rounds."""
+    """(figure, (rounds axes, probe axes or None)): the light rounds' errors per round (integer
+    ticks), the kept round ringed; auto's probe in a panel of its own, its error against Lambert's
+    on the same rows (not a round of the light). None with fewer than two light rounds and no probe."""
     from matplotlib.ticker import FixedLocator, FuncFormatter
 
     plt = _plt()
     rows = reflectance_rounds(refl)
-    if len(rows) < 2:
-        return None
-    fig, ax = plt.subplots(figsize=(6.4, 3.6))
     light = [r for r in rows if r["kind"] == "light"]
+    probe = probe_result(refl)
+    if not light or (len(light) < 2 and probe is None):
+        return None
     pct = lambda v: np.nan if v is None else 100 * float(v)  # noqa: E731
+    if probe is not None:
+        fig, (ax, pax) = plt.subplots(1, 2, figsize=(7.6, 3.6), gridspec_kw={"width_ratios": [3, 1.25]})
+    else:
+        fig, ax = plt.subplots(figsize=(6.4, 3.6))
+        pax = None
     x = [r["round"] for r in light]
     ax.plot(x, [pct(r["fit_rmse"]) for r in light], "o-", color="C0", label="fit error (all used pixels)")
     if any(r["held_out_rmse"] is not None for r in light):
         ax.plot(x, [pct(r["held_out_rmse"]) for r in light], "s--", color="C1", label="held-out error")
-    for r in rows:
-        if r["kind"] == "probe":
-            for v, mk in ((r["fit_rmse"], "o"), (r["held_out_rmse"], "s")):
-                if v is not None:
-                    ax.plot([r["round"]], [pct(v)], mk, ms=8, mfc="none", mec="0.45", mew=1.3)
-            state = "kept" if r["kept"] else "not kept"
-            ax.plot([], [], "o", ms=7, mfc="none", mec="0.45", mew=1.3,
-                    label=f"probe: reflectance fitted, light of round 0 fixed ({r['pixels'] or '?'} LM pixels)")
-            ax.annotate(f"probe: {state}", (r["round"], pct(r["fit_rmse"])), textcoords="offset points",
-                        xytext=(-10, 10), ha="right", fontsize=8, color="0.3")
-    kept = [r for r in rows if r["kept"]]
+    kept = [r for r in light if r["kept"]]
     for r in kept:
         v = r["held_out_rmse"] if r["held_out_rmse"] is not None else r["fit_rmse"]
         ax.plot([r["round"]], [pct(v)], "o", ms=17, mfc="none", mec="goldenrod", mew=2.5, zorder=5,
                 label=f"kept: round {r['round']} ({r['model']})")
-    rounds = [r["round"] for r in rows]
-    ax.xaxis.set_major_locator(FixedLocator(list(range(min(rounds), max(rounds) + 1))))
+    ax.xaxis.set_major_locator(FixedLocator(x))
     ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{int(round(v))}"))
-    ax.set_xlim(min(rounds) - 0.5, max(rounds) + 0.5)
-    ax.set_xlabel("round (0: the light under Lambert; then reflectance, light, ...)", fontsize=8)
+    ax.set_xlim(min(x) - 0.5, max(x) + 0.5)
+    ax.set_xlabel("light round (0: the light under Lambert; then reflectance, light, ...)", fontsize=8)
     ax.set_ylabel("relative RMSE (%)", fontsize=8)
     ax.tick_params(labelsize=8)
     chosen = kept[0]["round"] if kept else "?"
@@ -504,12 +527,31 @@ def reflectance_axes(refl: dict):
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
     ax.margins(y=0.15)
     ax.grid(True, alpha=0.3)
+    if pax is not None:
+        values = [pct(probe["lambert"]), pct(probe["error"])]
+        pax.bar([0, 1], values, width=0.55, color=["C0", "0.6"], edgecolor="0.3")
+        for k, v in enumerate(values):
+            if np.isfinite(v):
+                pax.annotate(f"{v:.2f} %", (k, v), xytext=(0, 3), textcoords="offset points", ha="center",
+                             va="bottom", fontsize=7)
+        pax.xaxis.set_major_locator(FixedLocator([0, 1]))
+        pax.set_xticklabels(["lambert", probe["model"]], fontsize=8)
+        pax.set_xlim(-0.6, 1.6)
+        finite = [v for v in values if np.isfinite(v)]
+        pax.set_ylim(0, 1.25 * max(finite) if finite else 1)
+        pax.tick_params(labelsize=8)
+        gain = "" if probe["gain"] is None else f"gain {100 * probe['gain']:.2f} %, "
+        state = "followed by light rounds" if probe["followed"] else "not kept"
+        pax.set_title(f"probe ({state})", fontsize=9)
+        pax.set_xlabel(f"{gain}on the {probe['compared_on']}\n({probe['pixels'] or '?'} LM pixels, "
+                       "round 0's light fixed)", fontsize=7)
+        pax.grid(True, axis="y", alpha=0.3)
     fig.tight_layout()
-    return fig, ax
+    return fig, (ax, pax)
 
 
 def reflectance_figure(refl: dict, dest: Path | None) -> Figure | None:
     made = reflectance_axes(refl)
     if made is None:
         return None
-    return _done(made[0], dest, {"rounds": reflectance_rounds(refl)})
+    return _done(made[0], dest, {"rounds": reflectance_rounds(refl), "probe": probe_result(refl)})

@@ -20,11 +20,14 @@ from pipelines.errors import option_errors
 
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
-from ..outputs import heat_map, jsonable, upscale, write_json, write_light, write_residual
-from ..scene import SceneFiles, load_photo
+from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, write_json, write_light, write_residual,
+                       write_view)
+from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 5  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: levels chosen again after the exact recast
+VERSION = 6  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+#   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
+#   after the exact recast
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
@@ -66,11 +69,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None):
     """Recover the light (and the reflectance, by `refl`); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
-    from pipelines.io import images, light_file, visibility_file
+    from pipelines.io import light_file, visibility_file
     from pipelines.io.scene_files import load_mesh
     from pipelines.geometry import raycast
-    from pipelines.light.cubemap import cross_image
-    from pipelines.model import render as rd
 
     given = given or set()
     with option_errors():  # --reflectance and the fit's start (--shininess)
@@ -89,20 +90,21 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         def work(d) -> Ran:
             t0 = time.monotonic()
             data = visibility_file.read_visibility(vis.path)
-            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
-            result = ctl.solve_scene(data, photo, material, opts, refl, given, backend, photo_path,
+            mesh = load_mesh(scene.mesh)
+            backend = raycast.make_backend(mesh, vis_opts.backend)
+            result = ctl.solve_scene(data, photo, material, opts, refl, given,
+                                     backend if data.method == "adaptive" else None, photo_path,
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive")
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
-            obs_cross, valid = cross_image(result.observability, cube)
-            obs_img = heat_map(obs_cross, 1.0)
-            obs_img[~valid] = 0.15
-            outputs.append(images.write_png(out / "observability.png", upscale(obs_img), already_display=True))
+            outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
+                                                "sqrt(G_ii / max G_ii): how strongly the used pixels respond to "
+                                                "the texel's radiance; black = unobservable", "fraction of the best"))
             outputs.append(out / "coefficients.h5")
             light_file.write_solution(outputs[-1], sol, cube, result.unobservable, {"material": str(m.to_json())})
-            img = rd.pixels_to_image(result.relit, data.samples.pixel, camera.height, camera.width)
-            outputs.append(images.write_exr(out / "relit.exr", img))
-            outputs.append(images.write_png(out / "relit.png", img, exposure))
+            cover = mesh_coverage(photo_view(scene), camera, mesh, backend)
+            outputs += write_view(out, "relit", result.relit, data.samples.pixel, (camera.height, camera.width),
+                                  photo.pixels, exposure, cover=cover)
             rows, cols = data.samples.pixel[:, 0], data.samples.pixel[:, 1]
             outputs.append(write_residual(out / "residual.png", result.relit, photo.pixels[rows, cols],
                                           data.samples.pixel, (camera.height, camera.width),
@@ -128,8 +130,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             return Ran(outputs, jsonable(summary))
 
         def redisplay() -> list:
-            relit = images.read_image(out / "relit.exr").pixels
-            return [images.write_png(out / "relit.png", relit, exposure)]
+            return [view_png(out / "relit.png", read_rgba(out / "relit.exr"), photo.pixels, exposure)]
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of("solve") or {}
