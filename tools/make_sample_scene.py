@@ -63,7 +63,6 @@ def spot_on_plane(spot_path: Path, plane_size=3.0, cells=12):
     idx = np.arange((cells + 1) ** 2).reshape(cells + 1, cells + 1)
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     pf = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    plane = trimesh.Trimesh(pv, pf, process=False)
     plane_normals = np.tile([0.0, 0.0, 1.0], (len(pv), 1))
     vertices = np.vstack([obj.vertices, pv])
     faces = np.vstack([obj.faces, pf + len(obj.vertices)])
