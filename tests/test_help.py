@@ -10,9 +10,9 @@ import shlex
 
 import click
 import pytest
+from cli_helpers import SAMPLE
 from click.testing import CliRunner
 
-from cli_helpers import SAMPLE
 from wavelight_cli.help_text import EXAMPLES, SCENE, SUMMARY
 from wavelight_cli.main import cli
 

@@ -48,8 +48,8 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "calibrate": [
         (f"{S} calibrate --pattern acircles --pattern-size 4x11 --spacing 10mm",
-         "The sample's target: 4 x 11 asymmetric dots, 10 mm apart -> camera.json, with each photo's "
-         "detected dots and reprojection in out/calibrate/view_00_overlay.png, ..."),
+         ("The sample's target: 4 x 11 asymmetric dots, 10 mm apart -> camera.json, with each photo's "
+          "detected dots and reprojection in out/calibrate/view_00_overlay.png, ...")),
         (f"{S} calibrate --images 'calib/view_0*.png' --fix-k3",
          "Only photos view_00 to view_09 (the glob is relative to the scene), k3 held at 0."),
         (f"{S} calibrate --spacing 10mm --zero-tangent --fix-aspect",
@@ -57,16 +57,16 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "register": [
         (f"{S} register",
-         "pose.json from correspondences.csv, refined so the mesh's outline meets the photo's edges; "
-         "out/register_overlay.png shows the outline, the clicks and their residuals."),
+         ("pose.json from correspondences.csv, refined so the mesh's outline meets the photo's edges; "
+          "out/register_overlay.png shows the outline, the clicks and their residuals.")),
         (f"{S} register --ransac on --outlier-threshold 2",
          "Always run RANSAC, counting a click more than 2 px off the fitted pose as wrong."),
         (f"{S} register --no-edge-refine", "The pose from the clicks alone."),
     ],
     "visibility": [
         (f"{S} visibility",
-         "R = 32, the upper hemisphere: .wavelight/visibility/photo-R32.h5 (solve, render, relight "
-         "reuse it; an interrupted run resumes)."),
+         ("R = 32, the upper hemisphere: .wavelight/visibility/photo-R32.h5 (solve, render, relight "
+          "reuse it; an interrupted run resumes).")),
         (f"{S} visibility -R 16 --supersample 2",
          "A coarser light, 2 x 2 rays per texel (fractional shadows): photo-R16-ss2.h5."),
         (f"{S} visibility --sphere --visibility exact",
@@ -74,20 +74,20 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "render": [
         (f"{S} render --light spot/truth/env_latlong.exr --material spot/truth/material.json",
-         "The photo as the sample's true light and material predict it: out/render.exr, render.png, "
-         "render_residual.png, and its error against the photo."),
-        (f"{S} render --light spot/truth/env_latlong.exr --model blinn-phong "
-         "--ks .3 .3 .3 --shininess 40",
+         ("The photo as the sample's true light and material predict it: out/render.exr, render.png, "
+          "render_residual.png, and its error against the photo.")),
+        ((f"{S} render --light spot/truth/env_latlong.exr --model blinn-phong "
+          "--ks .3 .3 .3 --shininess 40"),
          "The same light on a glossy Blinn-Phong material (kd 1 1 1)."),
     ],
     "solve": [
         (f"{S} solve",
-         "The paper's wavelet light at R = 32, Lambertian unless a specular term pays off: "
-         "out/light_latlong.exr, light_cross.png, relit.png, residual.png, reflectance.json, "
-         "solve_report.json."),
+         ("The paper's wavelet light at R = 32, Lambertian unless a specular term pays off: "
+          "out/light_latlong.exr, light_cross.png, relit.png, residual.png, reflectance.json, "
+          "solve_report.json.")),
         (f"{S} solve --basis sh -R 16",
-         "Nine spherical harmonics instead of wavelets, on a coarser cube map (R = 16: 768 "
-         "directions)."),
+         ("Nine spherical harmonics instead of wavelets, on a coarser cube map (R = 16: 768 "
+          "directions).")),
         (f"{S} solve --material spot/truth/material.json",
          "Solve the light under a known material (no reflectance fit)."),
         (f"{S} solve --reflectance blinn-phong --max-rounds 4",
@@ -95,15 +95,15 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "compare": [
         (f"{S} compare",
-         "Every basis on the scene at R = 32, with the reflectance solve fitted: out/compare.md "
-         "(table), compare.json, compare.png (speed against error)."),
+         ("Every basis on the scene at R = 32, with the reflectance solve fitted: out/compare.md "
+          "(table), compare.json, compare.png (speed against error).")),
         (f"{S} compare -R 16 --held-out 0.2",
          "Faster, with a fifth of the pixels held out to score the bases."),
     ],
     "relight": [
         (f"{S} relight",
-         "The photo's view under the recovered light: out/relight.exr, relight.png, "
-         "relight_residual.png, relight.json (its error against the photo)."),
+         ("The photo's view under the recovered light: out/relight.exr, relight.png, "
+          "relight_residual.png, relight.json (its error against the photo).")),
         (f"{S} relight --name evening --rotate 120 --light-exposure -1",
          "The light turned 120 degrees about +Z, one stop darker: out/evening.exr, evening.png."),
         (f"{S} relight --light spot/truth/env_latlong.exr --name truth",
@@ -111,32 +111,32 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "insert": [
         (f"{S} insert --at 0.8 -0.6 0.25 --radius 0.25 --object-kd 0.9 0.3 0.2",
-         "A red ball beside the cow, lit by the recovered light, its shadow on the ground: "
-         "out/insert.png, insert.exr, insert_render.exr, insert_shadow.png, insert.json."),
+         ("A red ball beside the cow, lit by the recovered light, its shadow on the ground: "
+          "out/insert.png, insert.exr, insert_render.exr, insert_shadow.png, insert.json.")),
         (f"{S} insert --at -0.7 0.5 0.15 --radius 0.15 --name ball --exposure 0",
-         "A smaller grey ball (kd 0.8) on the cow's other side, the PNG at exposure 0 (radiance 1 "
-         "is white) instead of the photo's: out/ball.png, ..."),
+         ("A smaller grey ball (kd 0.8) on the cow's other side, the PNG at exposure 0 (radiance 1 "
+          "is white) instead of the photo's: out/ball.png, ...")),
     ],
     "export": [
         (f"{S} export",
-         "The recovered light for every tool: out/export/mitsuba/ (light.exr, emitter.xml), "
-         "blender/ (light_equirect.exr, setup_world.py), opengl/ (px.exr ... nz.exr), export.json."),
+         ("The recovered light for every tool: out/export/mitsuba/ (light.exr, emitter.xml), "
+          "blender/ (light_equirect.exr, setup_world.py), opengl/ (px.exr ... nz.exr), export.json.")),
         (f"{S} export --format blender --height 256",
-         "Only Blender's world, 256 x 512: `blender --python spot/out/export/blender/setup_world.py` "
-         "opens Blender with the scene lit by it."),
+         ("Only Blender's world, 256 x 512: `blender --python spot/out/export/blender/setup_world.py` "
+          "opens Blender with the scene lit by it.")),
         (f"{S} export --format mitsuba --light spot/truth/env_latlong.exr",
          "Convert any lat-long light (here the sample's true one) instead of the recovered one."),
     ],
     "report": [
         (f"{S} report",
-         "out/report.html (one self-contained page) and out/report.md with out/report/*.png, from "
-         "whatever the stages wrote; nothing is recomputed."),
+         ("out/report.html (one self-contained page) and out/report.md with out/report/*.png, from "
+          "whatever the stages wrote; nothing is recomputed.")),
         (f"wavelight -q -s {SCENE} report", "The same, printing only the result line."),
     ],
     "check": [
         (f"{S} check",
-         "One line per file (camera, photo, points, mesh, pose and the used pixels) or the first "
-         "problem; needs camera.json (calibrate)."),
+         ("One line per file (camera, photo, points, mesh, pose and the used pixels) or the first "
+          "problem; needs camera.json (calibrate).")),
         (f"{S} check -R 16 --edge-margin 2",
          "Also check these visibility options and count the pixels they use."),
     ],
