@@ -641,7 +641,8 @@ def insert_cmd(obj, **kw):
 @force_option
 @click.pass_obj
 def export_cmd(obj, formats, light, height, face_size, force):
-    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (README: Relight, insert, export, report)."""
+    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (README:
+    Relight, insert, export, report)."""
     from .stages.export import FORMATS, export_stage
 
     scene = scene_folder(obj["scene"])
