@@ -145,3 +145,25 @@ def test_resolution_help_does_not_say_hemisphere_for_a_sphere(command):
         assert "--sphere" in text and "6R^2" in text, f"{command}: {text}"
     shown = _help(command)
     assert "3R^2 light directions on the hemisphere" not in " ".join(shown.split())
+
+
+# -- the README's commands section shows the same examples --------------------------------------
+
+def readme_examples() -> list[list[str]]:
+    from test_docs import README
+
+    text = README.read_text()
+    section = text[text.index("\n## Commands\n"):]
+    section = section[:section.index("\n## ", 1)]
+    block = section[section.index("```sh\n") + 6:]
+    block = block[:block.index("```")]
+    return [shlex.split(ln, comments=True) for ln in block.splitlines() if ln.startswith("wavelight ")]
+
+
+def test_the_readme_commands_are_help_examples_of_every_command():
+    examples = readme_examples()
+    from_help = {tuple(shlex.split(line)) for cases in EXAMPLES.values() for line, _ in cases}
+    for argv in examples:
+        assert tuple(argv) in from_help, f"README example not in any --help: {' '.join(argv)}"
+        parse(argv)
+    assert {parse(argv).info_name for argv in examples} == set(COMMANDS)
