@@ -65,12 +65,13 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "visibility": [
         (f"{S} visibility",
-         ("R = 32, the upper hemisphere: .wavelight/visibility/photo-R32.h5 (solve, render, relight "
-          "reuse it; an interrupted run resumes).")),
+         ("R = 32, the upper hemisphere: .wavelight/visibility/photo-R32.h5, which solve, render and "
+          "relight with the same options reuse.")),
         (f"{S} visibility -R 16 --supersample 2",
          "A coarser light, 2 x 2 rays per texel (fractional shadows): photo-R16-ss2.h5."),
         (f"{S} visibility --sphere --visibility exact",
-         "The full sphere of light, every shadow ray cast: photo-R32-sphere-exact.h5."),
+         ("The full sphere of light, every shadow ray cast, in chunks an interrupted run resumes "
+          "from: photo-R32-sphere-exact.h5.")),
     ],
     "render": [
         (f"{S} render --light spot/truth/env_latlong.exr --material spot/truth/material.json",
