@@ -130,8 +130,8 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
     ],
     "report": [
         (f"{S} report",
-         ("out/report.html (one self-contained page) and out/report.md with out/report/*.png, from "
-          "whatever the stages wrote; nothing is recomputed.")),
+         ("The report of whatever spot/out holds: open spot/out/report.html in a browser. Rerun it "
+          "after any stage: it reads the results, it recomputes nothing.")),
         (f"wavelight -q -s {SCENE} report", "The same, printing only the result line."),
     ],
     "check": [

@@ -653,8 +653,9 @@ def export_cmd(obj, formats, light, height, face_size, force):
 @_command("report")
 @click.pass_obj
 def report_cmd(obj):
-    """out/report.md with figures (out/report/*.png) from the results on disk: input, relit, residual,
-    light, observability; the refinement level by level; reflectance; bases; relighting."""
+    """out/report.html (one self-contained page) and out/report.md with figures (out/report/*.png)
+    from the results on disk: input, relit, residual, light, observability; the refinement level by
+    level; reflectance; bases; relighting, inserts and exports."""
     from .stages.report import report_stage
 
     report_stage(scene_folder(obj["scene"]), obj["console"])
