@@ -130,7 +130,7 @@ def test_two_resolutions_coexist(scene, baseline_arrays):
 
 
 def test_old_visibility_results_are_pruned(scene):
-    """Of each view the 4 most recently computed visibility results are kept (README: Cache)."""
+    """Of each view the 4 most recently computed visibility results are kept (DESIGN §6)."""
     for r in ("2", "4", "16", "32"):
         ok(invoke(scene, "visibility", "--resolution", r))
     names = {n for n in manifest(scene)["stages"] if n.startswith("visibility/photo/")}

@@ -375,6 +375,9 @@ COMPARE_CASES = {
              ("sh", 9, 1.804, 0.14), ("sh+", 9, 14.27, 0.2057), ("points", 27, 5.116, 0.033)],
     "identical pairs": [("wavelet", 906, 2.0, 0.03), ("quadtree", 906, 2.0, 0.03), ("discrete", 3072, 2.1, 0.03),
                         ("sh", 9, 0.5, 0.2), ("sh+", 9, 0.5, 0.2), ("points", 27, 1.9, 0.031)],
+    # bunny_sun at R = 64 (README: Speed): the times span four decades, the errors one and a half
+    "wide": [("wavelet", 750, 2.8, 0.0344), ("quadtree", 750, 2.9, 0.0344), ("discrete", 12288, 54.0, 0.0343),
+             ("sh", 9, 0.007, 0.1333), ("sh+", 9, 1.3, 0.2572), ("points", 27, 11.0, 0.0361)],
 }
 
 
@@ -413,6 +416,36 @@ def test_compare_labels_do_not_overlap(case):
     (ax,) = fig.axes
     assert sorted(t.get_text() for t in ax.texts) == sorted(f"{r['basis']} ({r['coefficients']})" for r in table["rows"])
     assert label_overlaps(fig, ax) == []
+
+
+def tick_label_overlaps(fig, ax) -> list[str]:
+    """Tick labels (major and minor, those drawn) of one axis that overlap each other."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    bad = []
+    for name, axis in (("x", ax.xaxis), ("y", ax.yaxis)):
+        lo, hi = sorted(axis.get_view_interval())
+        drawn = []
+        for locs, ticks in ((axis.get_majorticklocs(), axis.get_major_ticks()),
+                            (axis.get_minorticklocs(), axis.get_minor_ticks())):
+            for loc, tick in zip(locs, ticks):
+                label = tick.label1
+                if lo <= loc <= hi and label.get_visible() and label.get_text():
+                    drawn.append((label.get_text(), label.get_window_extent(renderer)))
+        for i, (text, box) in enumerate(drawn):
+            bad += [f"{name}: {text} / {other}" for other, o in drawn[i + 1:] if box.overlaps(o)]
+    return bad
+
+
+@pytest.mark.parametrize("case", sorted(COMPARE_CASES))
+def test_compare_tick_labels_do_not_overlap(case):
+    """The log axes label their minor ticks (2, 3, 5) only where a decade has room for them."""
+    from wavelight_cli.stages.solve import compare_figure
+
+    fig = compare_figure(_compare_table(COMPARE_CASES[case]))
+    (ax,) = fig.axes
+    assert tick_label_overlaps(fig, ax) == []
+    assert len(ax.xaxis.get_majorticklocs()) >= 2 or len(ax.xaxis.get_minorticklocs()) >= 2
 
 
 def test_compare_plot_writes_its_png(tmp_path):

@@ -1,4 +1,4 @@
-"""The per-scene stage cache (README: Cache): declared stages, keys, reasons, the manifest and the lock.
+"""The per-scene stage cache (DESIGN §6): declared stages, keys, reasons, the manifest and the lock.
 
 A stage declares (`Stage`) its name, an explicit version, the parameters that change its result,
 its input files, the keys of the stages it reads from (a Merkle chain) and, apart, the display

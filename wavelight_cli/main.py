@@ -18,6 +18,7 @@ import click
 from pipelines.errors import InputError, OptionError
 
 from .console import Console
+from .help_text import SUMMARY, with_examples
 from .scene import material_from_options, scene_folder
 
 VIS_SECTION = "visibility"  # scene.toml section shared by every command that needs visibility
@@ -185,7 +186,14 @@ def _load_scene_toml(ctx: click.Context, scene_dir: Path) -> dict:
 @click.version_option(package_name="wavelight")
 @click.pass_context
 def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
-    """Recover the light (and reflectance) of a scene from one calibrated photo of a known mesh."""
+    """Recover the light (and reflectance) of a scene from one calibrated photo of a known mesh.
+
+    A scene is a folder (-s, README: Scene folder): the photo, the mesh, camera.json and pose.json
+    (calibrate and register write them), optionally scene.toml with defaults per command. Each
+    command is a cached stage: it runs again only when its inputs or options changed, and says
+    why. Results go to the folder's out/. Try `wavelight COMMAND --help` for a command's options
+    and examples, `make demo` for every stage on the sample scene.
+    """
     ctx.obj = {"scene": scene_dir, "console": Console(quiet), "lock_wait": lock_wait}
     if ctx.invoked_subcommand is not None and scene_dir.is_dir():
         try:
@@ -193,6 +201,8 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
         except InputError as exc:
             raise click.ClickException(exc.line()) from None
 
+
+cli.help = with_examples(cli.help, "")
 
 force_option = click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
 exposure_option = click.option("--exposure", type=float, default=None,
@@ -243,8 +253,11 @@ def _vis_opts(kw):
 
 
 def _command(name, **kwargs):
+    """A subcommand: its summary in the group's list (help_text.SUMMARY), its docstring and
+    examples (help_text.EXAMPLES) as its help."""
     def deco(f):
-        cmd = cli.command(name, **kwargs)(f)
+        cmd = cli.command(name, short_help=SUMMARY[name], **kwargs)(f)
+        cmd.help = with_examples(cmd.help, name)
         cmd.uses_visibility = getattr(f, "uses_visibility", False)
         return cmd
     return deco
@@ -628,7 +641,8 @@ def insert_cmd(obj, **kw):
 @force_option
 @click.pass_obj
 def export_cmd(obj, formats, light, height, face_size, force):
-    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (see README: Exports)."""
+    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (README:
+    Relight, insert, export, report)."""
     from .stages.export import FORMATS, export_stage
 
     scene = scene_folder(obj["scene"])
@@ -639,8 +653,9 @@ def export_cmd(obj, formats, light, height, face_size, force):
 @_command("report")
 @click.pass_obj
 def report_cmd(obj):
-    """out/report.md with figures (out/report/*.png) from the results on disk: input, relit, residual,
-    light, observability; the refinement level by level; reflectance; bases; relighting."""
+    """out/report.html (one self-contained page) and out/report.md with figures (out/report/*.png)
+    from the results on disk: input, relit, residual, light, observability; the refinement level by
+    level; reflectance; bases; relighting, inserts and exports."""
     from .stages.report import report_stage
 
     report_stage(scene_folder(obj["scene"]), obj["console"])

@@ -386,7 +386,7 @@ def _material(m) -> str:
     return text
 
 
-EXPORT_TOOLS = (  # folder, tool, how to use (README: Relight, insert, export; pipelines/io/exports.py)
+EXPORT_TOOLS = (  # folder, tool, how to use (README: Relight, insert, export, report; pipelines/io/exports.py)
     ("mitsuba", "Mitsuba 3",
      "put `emitter.xml`'s `<emitter>` into the scene's XML, with `light.exr` beside the scene file "
      "(its `to_world` turns Mitsuba's +Y-up map to our +Z up)"),

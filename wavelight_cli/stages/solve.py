@@ -327,8 +327,27 @@ def compare_figure(table: dict):
     ax.set_title(f"{Path(table['scene']).name}, R = {table['resolution']}")
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
+    thin_tick_labels(fig, ax)
     place_labels(fig, ax, points)
     return fig
+
+
+def thin_tick_labels(fig, ax) -> None:
+    """Drop an axis' minor tick labels (2, 3, 5 in each decade) where any two of its tick labels
+    would overlap: an axis over several decades (solve times from 0.01 s to a minute) keeps only
+    the decades' labels."""
+    from matplotlib.ticker import NullFormatter
+
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for axis in (ax.xaxis, ax.yaxis):
+        lo, hi = sorted(axis.get_view_interval())
+        boxes = [tick.label1.get_window_extent(renderer)
+                 for locs, ticks in ((axis.get_majorticklocs(), axis.get_major_ticks()),
+                                     (axis.get_minorticklocs(), axis.get_minor_ticks()))
+                 for loc, tick in zip(locs, ticks) if lo <= loc <= hi and tick.label1.get_text()]
+        if any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:]):
+            axis.set_minor_formatter(NullFormatter())
 
 
 def place_labels(fig, ax, points) -> list:

@@ -4,7 +4,7 @@ view and options.
 Results of several options and views coexist: each is the stage `visibility/<view>/<options>`
 (e.g. `visibility/photo/R32`, `visibility/photo/R16-exact`) with its file
 `.wavelight/visibility/<view>-<options>.h5`. Of each view the KEEP most recently computed results
-are kept; older ones are deleted when a new one is computed (README: Cache). The exact method runs in resumable chunks: an
+are kept; older ones are deleted when a new one is computed (DESIGN §6). The exact method runs in resumable chunks: an
 interrupted run continues where it stopped and gives identical bits.
 """
 
