@@ -1,6 +1,6 @@
 """Cube-map light layout: texel directions, exact solid angles, lookups and lat-long conversion.
 
-The light is a set of texels on the cube [-1, 1]^3 (DESIGN §3). In hemisphere mode (the paper's
+The light is a set of texels on the cube [-1, 1]^3 (DESIGN §2). In hemisphere mode (the paper's
 Fig. 2) the +Z face is kept whole (R x R) and each side face keeps its upper half (R x R/2), split
 into two R/2 x R/2 squares: nine square *tiles* and 3R^2 texels covering z >= 0 exactly. Sphere
 mode keeps the six faces as six R x R tiles (6R^2 texels).

@@ -1,4 +1,4 @@
-"""The one forward model (DESIGN §2): every solver and every render goes through `transport`.
+"""The one forward model (DESIGN §3): every solver and every render goes through `transport`.
 
     I_j = sum_i L_i w_i V_ij max(0, N_j . d_i) f_j(d_i, v_j)
 

@@ -1,4 +1,4 @@
-"""The light bases (DESIGN §3): the one registry the CLI, compare, the report and the tests read.
+"""The light bases (DESIGN §4): the one registry the CLI, compare, the report and the tests read.
 
 One module per basis; a new basis is one module with a `solve(ne, cube, basis, options, progress)`
 function plus one entry in `BASES`. Importing this package is cheap (the basis modules load when a
