@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 DEMO   ?= build/demo
 SCENE  ?= spot_sun
 
-.PHONY: venv venv-blender demo test test-fast bench clean
+.PHONY: venv venv-blender demo test test-slow test-all bench clean
 
 venv: $(STAMP)
 
@@ -50,12 +50,18 @@ demo: $(STAMP)
 	@echo "truth (camera, pose, light, material): $(DEMO)/$(SCENE)/truth"
 	@echo "report: $(DEMO)/$(SCENE)/out/report.md"
 
+# The suite a laptop runs: everything but the tests marked slow (full-resolution checks against the
+# Mitsuba renders, the Blender renders, ChArUco detection, the exhaustive route on a second scene).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
-
-# everything but the slow full-resolution checks against Mitsuba and the Blender renders
-test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# the tests marked slow only (CI runs them after make test)
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+# everything
+test-all: $(STAMP)
+	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[test,bench]'

@@ -251,6 +251,7 @@ def test_bad_input_one_error_line_nothing_written(tmp_path, calibrated, mutate, 
         assert p.is_file() == (p in files_before), f"{p.name} was written by a failed run: {line}"
 
 
+@pytest.mark.slow  # ~55 s of ChArUco detection
 def test_charuco_through_the_cli(tmp_path):
     """10 rendered ChArUco photos and one photo without the board: 10 used, the blank one listed
     with its reason; intrinsics within 0.5 % (with --fix-k3: ten partial views do not determine k3,

@@ -167,6 +167,7 @@ def _charuco_photos(target, n, seed=0, size=(640, 480)):
     return out
 
 
+@pytest.mark.slow  # ~60 s of ChArUco detection
 def test_charuco_views_seen_in_part_still_calibrate():
     """12 rendered photos of a 7 x 5 ChArUco board (30 mm squares, 22 mm markers) with distortion,
     many cut by the frame (9-24 of the 24 corners seen). Corners within 0.2 px of the truth

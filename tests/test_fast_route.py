@@ -63,7 +63,7 @@ def _check_light(fr, fast, exact):
         assert pf[name] <= 1.10 * pe[name] + 1e-3, (name, pf[name], pe[name])
 
 
-@pytest.mark.parametrize("name", ["spot_overcast", "bunny_sun"])
+@pytest.mark.parametrize("name", [pytest.param("spot_overcast", marks=pytest.mark.slow), "bunny_sun"])  # each ~90 s
 def test_fast_light_matches_the_exhaustive_one(routes, name):
     fr, out = routes(name)
     fast, exact = out[False], out[True]

@@ -90,6 +90,7 @@ def test_wavelet_relights_the_input_view(problem, name, limit):
     assert np.all(sol.light >= 0)
 
 
+@pytest.mark.slow  # ~100 s: 4 x 4 rays per texel
 def test_bunny_sun_within_3_percent_with_supersampled_visibility(mitsuba_scene):
     """`--supersample 2` (2 x 2 shadow rays per texel: fractional visibility, softer texel shadows)
     brings bunny_sun within the issue's 3 % (measured 2.68 %)."""
