@@ -39,7 +39,8 @@ def solve_discrete(ne: LightSystem, cube: CubeMap, face_resolution: int | None =
     rec.seconds = time.perf_counter() - t_all
     final_light, final_x, final_info = light, x, info
     if ne.held_out.n_pixels > 0:
-        final_x, final_info = solve_nonnegative(ne.fit.combine(ne.held_out).project_tree(tree), x > 0)
+        # the fit part is projected already: only the held-out rows are added
+        final_x, final_info = solve_nonnegative(part.combine(ne.held_out.project_tree(tree)), x > 0)
         final_light = np.asarray(P @ final_x)
         final_light[unobservable] = 0.0
     all_rmse = ne.fit.combine(ne.held_out).relative_rmse(final_light)
