@@ -192,8 +192,9 @@ def _result(doc: Doc, solve: dict, made: dict):
         ("basis", f"{solve.get('basis')} ({sol.get('coefficients')} coefficients, level {sol.get('chosen_level')})"),
         ("relit error (all used pixels)", _pct(relit.get("relative_rmse_vs_photo"))),
         ("held-out error", _pct(sol.get("held_out_rmse"))),
-        ("brightest direction", f"theta {bd.get('theta_deg', float('nan')):.1f} deg, "
-                                f"phi {bd.get('phi_deg', float('nan')):.1f} deg"),
+        ("brightest direction (the brightest region's energy centroid)",
+         f"theta {bd.get('centroid', bd).get('theta_deg', float('nan')):.1f} deg, "
+         f"phi {bd.get('centroid', bd).get('phi_deg', float('nan')):.1f} deg"),
         ("unobservable texels", f"{solve.get('observability', {}).get('unobservable')} of "
                                 f"{solve.get('observability', {}).get('texels')}"),
         ("time", f"normal equations {solve.get('normal_equations_seconds', 0):.1f} s, light "
