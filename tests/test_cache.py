@@ -436,3 +436,23 @@ def test_concurrent_visibility_and_render(tmp_path):
     for stage in (VIS_STAGE, "render"):
         for rel, digest in stages[stage]["outputs"].items():
             assert sha256(scene / rel) == digest
+
+
+
+def test_stage_params_compare_as_the_manifest_holds_them(scene):
+    """A tuple option (insert's --object-kd, click's nargs=3) is stored as a list: a rerun with the
+    same value is up to date, not 'params changed: [0.5, 0.5, 0.5] -> [0.5, 0.5, 0.5]'."""
+    from wavelight_cli.cache import SceneCache, Stage
+
+    cache = SceneCache(scene)
+
+    def stage():
+        return Stage("probe-params", 1, {"object_kd": (0.5, 0.5, 0.5), "at": (1.0, 2.0, 3.0)})
+
+    assert stage().params == {"object_kd": [0.5, 0.5, 0.5], "at": [1.0, 2.0, 3.0]}
+    with cache.lock(10.0, lambda m: None):
+        first = cache.plan(stage())
+        assert first.run
+        cache.record(first, [], 0.0)
+        again = cache.plan(stage())
+        assert not again.run, again.reason

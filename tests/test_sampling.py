@@ -117,9 +117,16 @@ def test_small_scenes_use_every_pixel():
     pixels = np.stack([r.ravel(), c.ravel()], 1)
     s = sampling.fit_sample(pixels, np.ones(len(pixels), bool), np.zeros(len(pixels), np.int64))
     assert len(s.rows) == len(pixels) and np.all(s.weights == 1.0)
+    assert np.array_equal(np.sort(s.rows), np.arange(len(pixels)))
     held = rng.random(len(pixels)) < 0.1
     h = sampling.held_out_sample(pixels, held)
-    assert np.array_equal(h.rows, np.flatnonzero(held)) and np.all(h.weights == 1.0)
+    assert np.array_equal(np.sort(h.rows), np.flatnonzero(held)) and np.all(h.weights == 1.0)
+    # taken whole, the rows still come in stratified order: a head (what the explore set, the
+    # reflectance rounds and the probe take) spans the image, not its top rows
+    for rows, k in ((s.rows, 512), (h.rows, 120)):
+        head = pixels[rows[:k]]
+        assert head[:, 0].max() - head[:, 0].min() >= 50 and head[:, 1].max() - head[:, 1].min() >= 70, k
+        assert abs(head[:, 0].mean() - 29.5) < 4 and abs(head[:, 1].mean() - 39.5) < 5
 
 
 @pytest.mark.parametrize("shape", SHAPES)
@@ -133,6 +140,9 @@ def test_held_out_sample_is_spread_and_unbiased(shape):
     assert np.isclose(h.weights.sum(), n)
     f = _field(pixels)
     assert abs((h.weights * f[h.rows]).sum() / f[held].sum() - 1) < 0.01
+    # its head is spread too: the first 1,024 rows' rows of the image span what the whole does
+    head, whole = pixels[h.rows[:1024]], pixels[h.rows]
+    assert np.ptp(head[:, 0]) > 0.9 * np.ptp(whole[:, 0]) and np.ptp(head[:, 1]) > 0.9 * np.ptp(whole[:, 1])
 
 
 def test_visibility_change_counts_differing_texels():

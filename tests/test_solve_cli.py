@@ -482,6 +482,11 @@ def test_compare(solved, solved_copy):
     again = invoke(scene, "compare", "--resolution", RES)
     assert decision_line(ok(again), "compare").startswith("compare: skipped, up to date")
     assert again.stdout == result.stdout  # results print even when nothing ran
+    # the options of the other bases compare runs are in its key (not only the default basis')
+    sh4 = invoke(scene, "compare", "--resolution", RES, "--sh-order", "3")
+    assert decision_line(ok(sh4), "compare") == "compare: running (params changed: sh_order 2 -> 3)"
+    rows4 = {r["basis"]: r for r in json.loads((scene / "out" / "compare.json").read_text())["rows"]}
+    assert rows4["sh"]["coefficients"] == 16
     states = {stage: r["state"] for stage, r in _status(scene).items()}
     assert states["compare"] == "fresh" and states["solve"] == "fresh"
 

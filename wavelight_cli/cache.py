@@ -88,6 +88,11 @@ class Stage:
     upstream: dict = field(default_factory=dict)
     display: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        # as the manifest will hold them (tuples become lists): a rerun compares like with like
+        object.__setattr__(self, "params", json.loads(json.dumps(self.params, default=str)))
+        object.__setattr__(self, "display", json.loads(json.dumps(self.display, default=str)))
+
 
 @dataclass(frozen=True)
 class Decision:

@@ -658,7 +658,7 @@ def report_cmd(obj):
     level; reflectance; bases; relighting, inserts and exports."""
     from .stages.report import report_stage
 
-    report_stage(scene_folder(obj["scene"]), obj["console"])
+    report_stage(scene_folder(obj["scene"]), obj["console"], obj["lock_wait"])
 
 
 @_command("check")

@@ -334,9 +334,13 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         return sol
 
     def solve_light(m: Material):
-        if not options.exact and m.specular and "solution" in refined:
+        if not options.exact and m.specular:
             # a reflectance round: the refinement's tree re-solved on a smaller system (the rounds
-            # fit a handful of material parameters; the final light is refined on the whole sample)
+            # fit a handful of material parameters; the final light is refined on the whole sample).
+            # The first specular round refines first, then re-solves on the same smaller system, so
+            # that every round's errors are over the same rows
+            if "solution" not in refined:
+                full_solve(m, systems.system(m))
             ne = systems.system(m, ROUND_ROWS)
             sol = bases.refit(ne, vis.cube, refined["solution"])
             if sol is not None:
@@ -397,8 +401,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                         "the highlight is not resolved (try a larger R, or --reflectance lambert)")
     n_unobs = int(unobservable.sum())
     if n_unobs:
-        progress.note(f"{n_unobs} of {vis.cube.n_texels} light directions are unobservable (no used pixel sees "
-                      "them): they stay at zero, drawn magenta")
+        progress.note(f"{n_unobs} of {vis.cube.n_texels} light directions are unobservable (no pixel the "
+                      "light is fitted to sees them): they stay at zero, drawn magenta")
     if sol.details.get("min_radiance", 0.0) < 0:
         progress.note(f"warning: the {sol.basis} light goes negative (min {sol.details['min_radiance']:.4g}, "
                       f"{100 * sol.details['negative_fraction']:.0f} % of the texels): it is kept as solved; "

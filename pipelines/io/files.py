@@ -75,6 +75,16 @@ def output_set():
         current._abort()
 
 
+def discard(path: str | Path) -> None:
+    """Remove `path`: when the enclosing `output_set` commits, or now outside one."""
+    current = _current.get()
+    if current is not None:
+        current.discard(path)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            Path(path).unlink()
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | Path, now: bool = False):
     """Yield a temp path next to `path` (same suffix, so format-sniffing writers work); rename it

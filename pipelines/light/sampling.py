@@ -87,8 +87,9 @@ def fit_sample(pixels: np.ndarray, candidates: np.ndarray, change: np.ndarray, s
     """
     idx = np.flatnonzero(candidates)
     want = int(size)
-    if len(idx) <= want:
-        return Sample(idx, np.ones(len(idx)), len(idx), 0, f"all {len(idx)} fit pixels (at most {want} rows)")
+    if len(idx) <= want:  # every candidate, in stratified order: a head is still spread
+        return Sample(idx[stratified_order(pixels[idx])], np.ones(len(idx)), len(idx), 0,
+                      f"all {len(idx)} fit pixels (at most {want} rows)")
     n_boundary = int(BOUNDARY_SHARE * want)
     order = np.argsort(-change[idx], kind="stable")
     boundary = idx[order[:n_boundary]]
@@ -109,10 +110,13 @@ def fit_sample(pixels: np.ndarray, candidates: np.ndarray, change: np.ndarray, s
 
 
 def held_out_sample(pixels: np.ndarray, held_out: np.ndarray, max_rows: int = MAX_HELD_OUT_ROWS) -> Sample:
-    """The held-out pixels evaluated: all of them, or a stratified `max_rows` of them."""
+    """The held-out pixels evaluated: all of them, or a stratified `max_rows` of them; in
+    stratified order either way, so that every head (the reflectance probe's, the LM's) is spread
+    over the image like the whole."""
     idx = np.flatnonzero(held_out)
+    order = stratified_order(pixels[idx])
     if len(idx) <= max_rows:
-        return Sample(idx, np.ones(len(idx)), len(idx), 0, f"all {len(idx)} held-out pixels")
-    taken = np.sort(idx[stratified_order(pixels[idx])[:max_rows]])
+        return Sample(idx[order], np.ones(len(idx)), len(idx), 0, f"all {len(idx)} held-out pixels")
+    taken = idx[order[:max_rows]]
     return Sample(taken, np.full(len(taken), len(idx) / max_rows), len(idx), 0,
                   f"{max_rows} of {len(idx)} held-out pixels, spread over the image")

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipelines.errors import InputError
-from pipelines.io.files import atomic_output
+from pipelines.io.files import atomic_output, discard
 
 from ..console import Console
 from ..scene import SceneFiles, require
@@ -473,9 +473,8 @@ def build(scene: SceneFiles) -> tuple[Doc, dict]:
     _compare(doc, compare, out)
     _relight_insert(doc, out, figdir, made, keep)
     _exports(doc, out)
-    for old in figdir.glob("*.png"):  # figures of earlier runs whose inputs are gone
-        if old.name not in keep:
-            old.unlink()
+    # figures of earlier runs whose inputs are gone: removed once the pages are written
+    made["_stale"] = [old for old in figdir.glob("*.png") if old.name not in keep]
     root = scene.root
     read = [out / n for n in SOURCES[:3]] + [p for p, _, _ in _outputs(out)] + [out / "export" / "export.json",
                                                                                   scene.camera, scene.pose]
@@ -483,18 +482,25 @@ def build(scene: SceneFiles) -> tuple[Doc, dict]:
     return doc, made
 
 
-def report_stage(scene: SceneFiles, console: Console) -> Path:
+def report_stage(scene: SceneFiles, console: Console, lock_wait: float = 600.0) -> Path:
+    """out/report.md, report.html and report/*.png, under the scene lock (no stage changes what it
+    reads meanwhile). Each file is replaced atomically; the pages embed the figures just written,
+    so those are in place first, and stale figures go only after the pages are."""
+    from ..cache import SceneCache
     from .report_html import to_html
 
     t0 = time.monotonic()
-    doc, made = build(scene)
     out = scene.out
     md = out / "report.md"
-    with atomic_output(md) as tmp:
-        tmp.write_text(to_markdown(doc))
     page = out / "report.html"
-    with atomic_output(page) as tmp:
-        tmp.write_text(to_html(doc, out), encoding="utf-8")
+    with SceneCache(scene.root).lock(lock_wait, console.say):
+        doc, made = build(scene)
+        with atomic_output(md) as tmp:
+            tmp.write_text(to_markdown(doc))
+        with atomic_output(page) as tmp:
+            tmp.write_text(to_html(doc, out), encoding="utf-8")
+        for old in made.pop("_stale", []):
+            discard(old)
     n = len(list((out / "report").glob("*.png")))
     console.result(f"report: {md} and {page.name} ({n} figures in report/, {time.monotonic() - t0:.1f} s)")
     return md

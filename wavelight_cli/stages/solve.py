@@ -25,9 +25,10 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 6  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 7  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
-#   after the exact recast
+#   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
+#   from the rows, forced specular rounds all on the same rows
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
@@ -168,7 +169,10 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
     cache = SceneCache(scene.root)
     out = scene.out
-    params = {**opts.cache_params(), "material": material.to_json()}
+    # every basis' options that compare's runs read (not only the default basis')
+    light = opts.light
+    params = {**opts.cache_params(), "material": material.to_json(), "sh_order": light.sh_order,
+              "face_resolution": light.face_resolution, "levels": light.levels, "min_gain": light.min_gain}
     params.pop("basis")
     with cache.lock(lock_wait, console.say):
         vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait)

@@ -84,7 +84,9 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
         light = np.asarray(P @ x)
         light[unobservable] = 0.0
         coeffs = haar.leaf_values_to_coefficients(x, tree) if basis == "wavelet" else x
-        rec = Level(index, tree.n_coefficients, part.relative_rmse(x), _rmse(held, light),
+        # the fit error from the rows themselves (the explore system may be accumulated in float32,
+        # where L'GL - 2h'L + b'b cancels below ~0.3 %)
+        rec = Level(index, tree.n_coefficients, explore.relative_rmse(light), _rmse(held, light),
                     0.0, info, light, coeffs, tree)
         records.append(rec)
         if progress:
