@@ -163,7 +163,14 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
         given.update({"n"} if "n" in data or "shininess" in data else set())
         given.update({"file"} if material_file is not None else set())
     try:
-        return Material.from_json(data)
+        material = Material.from_json(data)
+        extra = {k: v for k, v in (("alpha", alpha), ("ior", ior), ("distribution", distribution)) if v is not None}
+        if extra and material.model != "plastic":  # plastic's options for a fit's start (solve --reflectance)
+            from dataclasses import replace
+
+            Material.from_json({"model": "plastic", **extra})  # (checked as a plastic material would be)
+            material = replace(material, extra={**material.extra, "plastic_start": extra})
+        return material
     except (ValueError, TypeError) as exc:
         if material_file is None:  # the values are the options' (--kd, --ks, --shininess)
             raise OptionError(str(exc), None, "fix --kd / --ks / --shininess / --alpha / --ior") from None

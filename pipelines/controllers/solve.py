@@ -110,11 +110,14 @@ class ReflectanceOptions:
         distribution are kept by the fit."""
         m = material
         ks = m.ks if "ks" in given and any(m.ks) else (DEFAULT_START_PLASTIC_KS * float(np.mean(m.kd)),) * 3
-        alpha = m.roughness if "alpha" in given and m.roughness > 0 else DEFAULT_START_ALPHA
         plastic = m.model == PLASTIC
-        return Material(kd=m.kd, ks=tuple(ks), model=PLASTIC, roughness=float(alpha),
-                        ior=m.ior if plastic or "ior" in given else 1.49,
-                        distribution=m.distribution if plastic or "distribution" in given else "ggx")
+        opts = {} if plastic else dict(m.extra.get("plastic_start", {}))  # --alpha/--ior/--distribution
+        if plastic:
+            opts = {k: getattr(m, f) for k, f in (("alpha", "roughness"), ("ior", "ior"), ("distribution", "distribution"))
+                    if k in given}
+        alpha = opts.get("alpha") or DEFAULT_START_ALPHA
+        return Material(kd=m.kd, ks=tuple(ks), model=PLASTIC, roughness=float(alpha), ior=float(opts.get("ior", 1.49)),
+                        distribution=str(opts.get("distribution", "ggx")))
 
 
 class Progress:
@@ -312,9 +315,9 @@ def prepare_photo(vis, photo, options: SolveOptions, photo_path=None):
 
 def plastic_starts(start: Material, given: set) -> list[Material]:
     """The plastic fits `auto` probes: the start's distribution if given, else GGX and Beckmann."""
-    if "distribution" in given or start.distribution != "ggx":
+    if "distribution" in given:
         return [start]
-    return [start, replace(start, distribution="beckmann")]
+    return [start, replace(start, distribution="beckmann" if start.distribution == "ggx" else "ggx")]
 
 
 def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectance: ReflectanceOptions,
