@@ -337,6 +337,12 @@ def mitsuba_bsdf(material: dict) -> dict:
         return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(material.get("color", (1, 1, 1)))}}
     if material["type"] == "roughconductor":  # material "none": eta 0, k 1, so F = 1 (a white GGX lobe)
         return {"type": "roughconductor", "material": "none", "distribution": "ggx", "alpha": float(material["alpha"])}
+    if material["type"] in ("roughplastic", "plastic"):  # the microfacet dielectric (wavelight's `plastic`)
+        out = {"type": material["type"], "int_ior": float(material.get("ior", 1.49)), "ext_ior": 1.0,
+               "nonlinear": False, "diffuse_reflectance": {"type": "rgb", "value": list(material.get("color", (1, 1, 1)))}}
+        if material["type"] == "roughplastic":
+            out.update(distribution=material.get("distribution", "ggx"), alpha=float(material["alpha"]))
+        return out
     raise ValueError(f"unknown material {material['type']!r}")
 
 

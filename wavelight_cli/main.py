@@ -16,6 +16,7 @@ from pathlib import Path
 import click
 
 from pipelines.errors import InputError, OptionError
+from pipelines.model.materials import MODELS
 
 from .console import Console
 from .help_text import SUMMARY, with_examples
@@ -342,7 +343,13 @@ def visibility_cmd(obj, force, **kw):
     visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
 
 
-MATERIAL_JSON = "Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30})"
+MATERIAL_JSON = ("Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30}, or {'model': 'plastic', "
+                 "'kd': [..], 'alpha': 0.1, 'distribution': 'ggx', 'ior': 1.49})")
+PLASTIC_HELP = {  # --alpha, --ior, --distribution: the `plastic` model's own parameters (README: reflectance)
+    "alpha": "plastic: microfacet roughness alpha, 0 = smooth (Mitsuba's alpha) [default: 0.1]",
+    "ior": "plastic: the coating's index of refraction [default: 1.49]",
+    "distribution": "plastic: microfacet distribution [default: ggx]",
+}
 MATERIAL_HELP = {  # option -> help, per meaning of the material options
     "given": {  # render: the material rendered
         "material_file": f"{MATERIAL_JSON}; the options below override its fields.",
@@ -382,11 +389,17 @@ def material_options(role: str):
         opts = [
             click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path),
                          help=text["material_file"]),
-            click.option("--model", type=click.Choice(["lambert", "blinn-phong", "phong", "phong-classic"]),
-                         help=text["model"]),
+            click.option("--model", type=click.Choice(list(MODELS)), help=text["model"]),
             click.option("--kd", type=(float, float, float), default=None, help=text["kd"]),
             click.option("--ks", type=(float, float, float), default=None, help=text["ks"]),
             click.option("--shininess", type=click.FloatRange(0), default=None, help=text["shininess"]),
+            click.option("--alpha", type=click.FloatRange(0, 4), default=None,
+                         help=PLASTIC_HELP["alpha"] + ("; with a fitted reflectance the fit's start" if role == "solve"
+                                                       else "") + "."),
+            click.option("--ior", type=click.FloatRange(1.05, 3.0), default=None,
+                         help=PLASTIC_HELP["ior"] + ("; a fit keeps it" if role == "solve" else "") + "."),
+            click.option("--distribution", type=click.Choice(["ggx", "beckmann"]), default=None,
+                         help=PLASTIC_HELP["distribution"] + "."),
         ]
         for opt in reversed(opts):
             f = opt(f)
@@ -396,7 +409,7 @@ def material_options(role: str):
 
 def _material(kw, given: set | None = None):
     return material_from_options(kw.pop("material_file"), kw.pop("model"), kw.pop("kd"), kw.pop("ks"),
-                                 kw.pop("shininess"), given)
+                                 kw.pop("shininess"), given, kw.pop("alpha"), kw.pop("ior"), kw.pop("distribution"))
 
 
 def _material_or_fitted(kw, scene):
@@ -466,7 +479,7 @@ def reflectance_options(f):
     """How solve treats the reflectance."""
     opts = [
         click.option("--reflectance", type=click.Choice(["auto", "lambert", "blinn-phong", "phong", "phong-classic",
-                                                         "given"]), default=None,
+                                                         "plastic", "given"]), default=None,
                      help="Fit the reflectance: 'auto' (default) keeps Lambertian unless a Blinn-Phong term lowers "
                           "the held-out error by --min-specular-gain; a model name fits that model (ks, n, kd "
                           "colour) by Levenberg-Marquardt, alternating with the light; 'given' uses the material "

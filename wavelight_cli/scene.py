@@ -128,9 +128,10 @@ def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
 
 
 def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
-                          given: set | None = None):
-    """The material of --material/--model/--kd/--ks/--shininess; `given` (if a set) receives the
-    names of the fields the user set ('model', 'kd', 'ks', 'n', 'file')."""
+                          given: set | None = None, alpha=None, ior=None, distribution=None):
+    """The material of --material/--model/--kd/--ks/--shininess (and plastic's --alpha, --ior,
+    --distribution); `given` (if a set) receives the names of the fields the user set ('model', 'kd',
+    'ks', 'n', 'alpha', 'ior', 'distribution', 'file')."""
     from pipelines.model.materials import Material
 
     data: dict = {}
@@ -151,16 +152,28 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
         data["ks"] = list(ks)
     if shininess is not None:
         data["n"] = shininess
+    for name, value in (("alpha", alpha), ("ior", ior), ("distribution", distribution)):
+        if value is not None:
+            data[name] = value
+            data.pop("roughness" if name == "alpha" else "", None)
     if given is not None:
+        given.update(k for k in ("alpha", "ior", "distribution") if k in data or (k == "alpha" and "roughness" in data))
         given.update(k for k in ("kd", "ks") if k in data)
         given.update({"model"} if "model" in data or "type" in data else set())
         given.update({"n"} if "n" in data or "shininess" in data else set())
         given.update({"file"} if material_file is not None else set())
     try:
-        return Material.from_json(data)
+        material = Material.from_json(data)
+        extra = {k: v for k, v in (("alpha", alpha), ("ior", ior), ("distribution", distribution)) if v is not None}
+        if extra and material.model != "plastic":  # plastic's options for a fit's start (solve --reflectance)
+            from dataclasses import replace
+
+            Material.from_json({"model": "plastic", **extra})  # (checked as a plastic material would be)
+            material = replace(material, extra={**material.extra, "plastic_start": extra})
+        return material
     except (ValueError, TypeError) as exc:
         if material_file is None:  # the values are the options' (--kd, --ks, --shininess)
-            raise OptionError(str(exc), None, "fix --kd / --ks / --shininess") from None
+            raise OptionError(str(exc), None, "fix --kd / --ks / --shininess / --alpha / --ior") from None
         raise InputError(str(exc), material_file, "fix the material values") from None
 
 

@@ -22,11 +22,13 @@ import numpy as np
 from ..errors import InputError
 from ..metrics import versus_photo
 from ..light.bases import REFINED, LightOptions
-from ..model.materials import SPECULAR_MODELS, Material
+from ..model.materials import PLASTIC, SPECULAR_MODELS, Material
 
-REFLECTANCE_MODES = ("auto", "lambert", "blinn-phong", "phong", "phong-classic", "given")
+REFLECTANCE_MODES = ("auto", "lambert", "blinn-phong", "phong", "phong-classic", "plastic", "given")
 DEFAULT_START_KS = 0.25  # start of a specular fit: ks = 0.25 x mean(kd), unless --ks is given
 DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
+DEFAULT_START_ALPHA = 0.1  # a plastic fit starts at alpha 0.1 (--alpha), ks = 1 x mean(kd) (--ks), IOR 1.49 (--ior)
+DEFAULT_START_PLASTIC_KS = 1.0
 EXPLORE_ROWS = 8192  # refinement levels are chosen on this many of the fit sample's rows
 PROBE_ROWS = 2048  # --reflectance auto probes a specular term on this many fit rows (and half as many held out)
 LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of them where highlights are)
@@ -91,14 +93,31 @@ class ReflectanceOptions:
         """The fit's start: the given material's kd; its ks and n if the user gave them, else
         ks = DEFAULT_START_KS x mean(kd) and n = DEFAULT_START_SHININESS; the model of --reflectance
         (auto: the given specular model, else blinn-phong)."""
+        if self.mode == PLASTIC:
+            return self.plastic_start(material, given)
         model = self.mode if self.mode in SPECULAR_MODELS else (
-            material.model if material.model in SPECULAR_MODELS else "blinn-phong")
+            material.model if material.model in SPECULAR_MODELS and material.model != PLASTIC else "blinn-phong")
         ks = material.ks if "ks" in given and any(material.ks) else (DEFAULT_START_KS * float(np.mean(material.kd)),) * 3
         if "n" in given and not material.shininess > 0:
             raise InputError(f"--shininess must be > 0 to start a fit, got {material.shininess:g}", None,
                              f"use e.g. --shininess {DEFAULT_START_SHININESS:g}, or leave it out")
         n = material.shininess if "n" in given else DEFAULT_START_SHININESS
         return replace(material, model=model, ks=tuple(ks), shininess=float(n))
+
+    def plastic_start(self, material: Material, given: set) -> Material:
+        """A plastic fit's start: kd as given; ks, alpha, IOR and distribution as given, else
+        DEFAULT_START_PLASTIC_KS x mean(kd), DEFAULT_START_ALPHA, 1.49 and ggx. The IOR and the
+        distribution are kept by the fit."""
+        m = material
+        ks = m.ks if "ks" in given and any(m.ks) else (DEFAULT_START_PLASTIC_KS * float(np.mean(m.kd)),) * 3
+        plastic = m.model == PLASTIC
+        opts = {} if plastic else dict(m.extra.get("plastic_start", {}))  # --alpha/--ior/--distribution
+        if plastic:
+            opts = {k: getattr(m, f) for k, f in (("alpha", "roughness"), ("ior", "ior"), ("distribution", "distribution"))
+                    if k in given}
+        alpha = opts.get("alpha") or DEFAULT_START_ALPHA
+        return Material(kd=m.kd, ks=tuple(ks), model=PLASTIC, roughness=float(alpha), ior=float(opts.get("ior", 1.49)),
+                        distribution=str(opts.get("distribution", "ggx")))
 
 
 class Progress:
@@ -113,6 +132,9 @@ class Progress:
 
 def material_text(m: Material) -> str:
     kd = " ".join(f"{v:.3g}" for v in m.kd)
+    if m.model == PLASTIC:
+        return (f"plastic kd {kd}, ks {float(np.mean(m.ks)):.3g}, alpha {m.roughness:.3g} ({m.distribution}, "
+                f"IOR {m.ior:.3g})")
     if not m.specular:
         return f"{m.model} kd {kd}"
     return f"{m.model} kd {kd}, ks {float(np.mean(m.ks)):.3g}, n {m.shininess:.3g}"
@@ -291,6 +313,13 @@ def prepare_photo(vis, photo, options: SolveOptions, photo_path=None):
     return values, ~saturated, held
 
 
+def plastic_starts(start: Material, given: set) -> list[Material]:
+    """The plastic fits `auto` probes: the start's distribution if given, else GGX and Beckmann."""
+    if "distribution" in given:
+        return [start]
+    return [start, replace(start, distribution="beckmann" if start.distribution == "ggx" else "ggx")]
+
+
 def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectance: ReflectanceOptions,
                 given: set | None = None, backend=None, photo_path=None, progress: Progress | None = None,
                 adaptive: bool = False) -> SolveResult:
@@ -373,7 +402,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             if reflectance.mode == "auto":
                 result = rf.select(vis, values, start, solve_light, usable, held, material.kd,
                                    reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
-                                   rows=lm_rows, probe_rows=probe_rows)
+                                   rows=lm_rows, probe_rows=probe_rows,
+                                   plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
+                                   note=progress.note)
             else:
                 result = rf.alternate(vis, values, start, solve_light, usable, held, material.kd,
                                       reflectance.max_rounds, progress=on_round, rows=lm_rows)
@@ -396,7 +427,12 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     versus = versus_photo(relit, values, usable)
     warnings = ls.diagnose(system, sol, vis.cube, versus["relative_rmse_vs_photo"])
     n_range = rf.SHININESS_RANGE
-    if material.specular and not n_range[0] * 1.001 < material.shininess < n_range[1] * 0.999:
+    if material.model == PLASTIC:
+        a_range = rf.lobe_range(PLASTIC)
+        if material.specular and not a_range[0] * 1.001 < material.roughness < a_range[1] * 0.999:
+            warnings.append(f"the roughness alpha = {material.roughness:g} is at the end of its range {a_range}: "
+                            "the highlight is not resolved (try a larger R, or --reflectance lambert)")
+    elif material.specular and not n_range[0] * 1.001 < material.shininess < n_range[1] * 0.999:
         warnings.append(f"the shininess n = {material.shininess:g} is at the end of its range {n_range}: "
                         "the highlight is not resolved (try a larger R, or --reflectance lambert)")
     n_unobs = int(unobservable.sum())

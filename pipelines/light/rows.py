@@ -311,7 +311,8 @@ class UnionPart:
 class TransportRows:
     """The transport of some used pixels (rows of a visibility), built once per material.
 
-    The diffuse transport D is built once; the specular one S once per (model, shininess). Only the
+    The diffuse transport D is built once (a `plastic` base's once per coating); the specular one S
+    once per lobe (model, shininess or roughness, IOR, distribution). Only the
     stored visibility rows (bit-packed) and the rows' geometry are kept to rebuild S.
     """
 
@@ -325,25 +326,43 @@ class TransportRows:
         self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows])
         self.rows = rows
         self._diffuse: Pyramid | None = None
+        self._coated: tuple | None = None  # (plastic key, D seen through the coating)
         self._specular: dict = {}
 
-    def diffuse(self) -> Pyramid:
-        if self._diffuse is None:
-            from ..model.render import diffuse_transport
+    def diffuse(self, material=None) -> Pyramid:
+        """D (kd = 1) under `material`: the Lambertian one (kept) for every model but `plastic`, whose
+        base is seen through its coating (the latest such D is kept as well)."""
+        from ..model.materials import PLASTIC
 
-            v = self.vis
-            D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
-            for sl, V in v.blocks(8192, raw=True):
-                D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube)
-            self._diffuse = Pyramid(D, v.cube.tile_sizes)
-        return self._diffuse
+        plastic = material is not None and material.model == PLASTIC
+        key = (material.roughness, material.ior, material.distribution) if plastic else None
+        if key is None and self._diffuse is not None:
+            return self._diffuse
+        if key is not None and self._coated is not None and self._coated[0] == key:
+            return self._coated[1]
+        from ..model.render import diffuse_transport
 
-    def specular(self, model: str, shininess: float, n_rows: int | None = None) -> Pyramid:
-        """S (ks = 1) of the first `n_rows` rows (all by default); the latest one is kept (memory)."""
+        v = self.vis
+        D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
+        for sl, V in v.blocks(8192, raw=True):
+            D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube, material if plastic else None,
+                                      v.samples.view[sl])
+        pyramid = Pyramid(D, v.cube.tile_sizes)
+        if key is None:
+            self._diffuse = pyramid
+        else:
+            self._coated = (key, pyramid)
+        return pyramid
+
+    def specular(self, material, n_rows: int | None = None) -> Pyramid:
+        """S (ks = 1) of `material`'s lobe for the first `n_rows` rows (all by default); the latest one
+        is kept (memory)."""
+        from dataclasses import replace
+
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
-        key = (model, float(shininess), n)
+        unit = replace(material, kd=(1.0, 1.0, 1.0), ks=(1.0, 1.0, 1.0), extra={})
+        key = (unit.model, unit.shininess, unit.roughness, unit.ior, unit.distribution, n)
         if key not in self._specular:
-            from ..model.materials import Material
             from ..model.render import specular_transport
 
             S = np.empty((n, self.vis.cube.n_texels), np.float32)
@@ -352,8 +371,7 @@ class TransportRows:
                     break
                 sl = slice(sl.start, min(sl.stop, n))
                 S[sl] = specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl],
-                                           self.vis.samples.view[sl], self.vis.cube,
-                                           Material(ks=(1.0, 1.0, 1.0), shininess=shininess, model=model))
+                                           self.vis.samples.view[sl], self.vis.cube, unit)
             self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}
         return self._specular[key]
 
@@ -364,7 +382,7 @@ class TransportRows:
         `RowsPart.head`): a specular round's smaller system builds S for those rows alone."""
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         w = np.asarray(weights, np.float64)
-        D = self.diffuse() if n == self.vis.n_pixels else self.diffuse().head(n)
-        S = self.specular(material.model, material.shininess, n) if material.specular else None
+        D = self.diffuse(material) if n == self.vis.n_pixels else self.diffuse(material).head(n)
+        S = self.specular(material, n) if material.specular else None
         return RowsPart(D, S, np.asarray(material.kd, float), np.asarray(material.ks, float),
                         np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels))

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.optimize import least_squares, nnls
 
 from ..geometry.visibility import VisibilityData, decode
-from .materials import SPECULAR_MODELS, Material
+from .materials import PLASTIC, SPECULAR_MODELS, Material
 from ..threads import parallel_blocks
 from .render import KERNEL_ROWS, lobe_norm, specular_factors, transport
 
@@ -219,7 +219,10 @@ class SpecularFit:
 
     def summary(self) -> dict:
         m = self.material
-        return {"kd": list(m.kd), "ks": float(np.mean(m.ks)), "n": m.shininess, "ks_rgb_fitted": self.ks_rgb.tolist(),
+        lobe = {"alpha": m.roughness, "distribution": m.distribution, "ior": m.ior} if m.model == PLASTIC else \
+            {"n": m.shininess}
+        return {"model": m.model, "kd": list(m.kd), "ks": float(np.mean(m.ks)), **lobe,
+                "ks_rgb_fitted": self.ks_rgb.tolist(),
                 "light_colour_scale": self.light_scale.tolist(), "sigma": self.sigma,
                 "fit_rmse": self.fit_rmse, "held_out_rmse": self.held_out_rmse, "start": self.start,
                 "path": self.path, "message": self.message, "evaluations": self.evaluations,
@@ -421,7 +424,9 @@ class Reflectance:
         m = self.material
         fit = self.fit
         kd_mean = float(np.mean(m.kd))
-        out = {"model": m.model, "kd": list(m.kd), "ks": list(m.ks), "n": m.shininess,
+        lobe = {"alpha": m.roughness, "distribution": m.distribution, "ior": m.ior} if m.model == PLASTIC else \
+            {"n": m.shininess}
+        out = {"model": m.model, "kd": list(m.kd), "ks": list(m.ks), **lobe,
                "ks_over_kd": (float(np.mean(m.ks)) / kd_mean) if kd_mean > 0 else None,
                "mode": self.mode, "decision": self.decision, "candidates": self.candidates,
                "uncertainty": fit.sigma if fit is not None else None,
@@ -438,7 +443,35 @@ SolveLight = Callable[[Material], tuple[object, object]]  # material -> (LightSo
 
 
 def _params(m: Material) -> np.ndarray:
-    return np.array([*m.kd, float(np.mean(m.ks)), np.log(max(m.shininess, 1e-12))])
+    return np.array([*m.kd, float(np.mean(m.ks)), np.log(max(m.lobe_value, 1e-12))])
+
+
+def lobe_range(model: str) -> tuple[float, float]:
+    """The fitted lobe parameter's range: n for the Phong family, alpha for plastic."""
+    if model == PLASTIC:
+        from .plastic_fit import ALPHA_RANGE
+
+        return ALPHA_RANGE
+    return SHININESS_RANGE
+
+
+def lm_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
+            rows=None, weights=None):
+    """The LM's inputs for `material`'s model under a light (`specular_data`, or `plastic_fit.plastic_data`)."""
+    if material.model == PLASTIC:
+        from .plastic_fit import plastic_data
+
+        return plastic_data(vis, photo, light, material, use, held_out, rows=rows, weights=weights)
+    return specular_data(vis, photo, light, material.model, use, held_out, rows=rows, weights=weights)
+
+
+def lm_fit(data, start: Material, guard: bool = True) -> "SpecularFit":
+    """`fit_specular`, or `plastic_fit.fit_plastic` for plastic's data."""
+    if data.model == PLASTIC:
+        from .plastic_fit import fit_plastic
+
+        return fit_plastic(data, start, guard=guard)
+    return fit_specular(data, start, guard=guard)
 
 
 def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
@@ -459,17 +492,18 @@ def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
         return material
     rho = min(rho, 0.75)
     x = fitted[-1] + d * rho / (1.0 - rho)
-    if not (np.all(np.isfinite(x)) and np.all(x[:4] >= 0)
-            and SHININESS_RANGE[0] <= np.exp(min(x[4], 50.0)) <= SHININESS_RANGE[1]):
+    lo, hi = lobe_range(material.model)
+    if not (np.all(np.isfinite(x)) and np.all(x[:4] >= 0) and lo <= np.exp(min(x[4], 50.0)) <= hi):
         return material
     fitted[-1] = x  # the next step is measured from where the light was solved
-    return replace(material, kd=tuple(float(v) for v in x[:3]), ks=(float(x[3]),) * 3, shininess=float(np.exp(x[4])))
+    return replace(material, kd=tuple(float(v) for v in x[:3]), ks=(float(x[3]),) * 3).with_lobe(float(np.exp(x[4])))
 
 
 def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
               use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
-              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None) -> Reflectance:
-    """Light under `start` -> LM -> light -> ... until a round lowers the all-pixel RMSE by < tol.
+              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None, first=None) -> Reflectance:
+    """Light under `start` (or `first`, its (solution, context) already solved) -> LM -> light -> ...
+    until a round lowers the all-pixel RMSE by < tol.
 
     The best round (lowest RMSE) is kept; at most `max_rounds` LM fits. `rows`: (pixel indices,
     weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
@@ -480,7 +514,7 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     if start.model not in SPECULAR_MODELS:
         raise ValueError(f"alternation needs a specular model, got {start.model!r}")
     ts = time.perf_counter()
-    sol, ctx = solve_light(start)
+    sol, ctx = solve_light(start) if first is None else first  # (`first`: round 0's light, already solved)
     rounds = [Round(0, start, sol.fit_rmse, sol.held_out_rmse, time.perf_counter() - ts)]
     kept = [(sol, ctx)]
     if progress:
@@ -490,8 +524,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
     for k in range(1, max_rounds + 1):
         chosen = rows(sol.light, material.kd) if callable(rows) else rows
-        data = specular_data(vis, photo, sol.light, start.model, use, held_out, **_rows(chosen))
-        fit = fit_specular(data, material, guard=k == 1)
+        data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen))
+        fit = lm_fit(data, material, guard=k == 1)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
         fitted_material = material
@@ -532,7 +566,7 @@ def fixed(material: Material, solve_light: SolveLight, mode: str, decision: str,
 def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
            use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
            min_gain: float = 0.05, max_rounds: int = 8, tol: float = ROUND_TOL, progress=None,
-           rows=None, probe_rows=None) -> Reflectance:
+           rows=None, probe_rows=None, plastic_starts=(), note=None) -> Reflectance:
     """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
 
     1. Light under Lambert (kd = kd_reference).
@@ -540,8 +574,12 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
        `probe_rows(light)`: it only has to tell whether a specular term helps). If ks is not significant (< 3 sigma) or the probe
        lowers the held-out error of the same light by less than `min_gain`, stay Lambertian (no
        further light solve).
-    3. Otherwise alternate from the probe's material and keep the specular model if its held-out
-       error beats the Lambertian light's by `min_gain`.
+    3. Otherwise the lobe: the probe's material gets its own light (one solve); each of
+       `plastic_starts` (the microfacet dielectric, e.g. GGX and Beckmann) is fitted on the same
+       rows with that light fixed and gets its own light in turn. The best of each family (by
+       held-out error under its first light: the probe's Phong lobe, the best plastic) is
+       alternated with the light; the lowest held-out error of those is kept if it beats the
+       Lambertian light's by `min_gain`.
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
@@ -561,35 +599,95 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         chosen = probe_rows(sol0.light) if callable(probe_rows) else probe_rows
         if chosen is None:
             chosen = rows(sol0.light, start.kd) if callable(rows) else rows
-        data = specular_data(vis, photo, sol0.light, start.model, use, held_out,
-                             **_rows(chosen))
+        data = lm_data(vis, photo, sol0.light, start, use, held_out, **_rows(chosen))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
-    probe = fit_specular(data, start)
+    probe = lm_fit(data, start)
     which = "held_out" if (~data.fit).any() else "fit"
-    plain = data.rmse(lambert.kd, 0.0, 1.0, which)
+    plain = data.rmse(lambert.kd, 0.0, 1.0, which) if hasattr(data, "rmse") else _lambert_rmse(data, lambert.kd, which)
     probe_err = probe.held_out_rmse if which == "held_out" else probe.fit_rmse
     gain = 1.0 - probe_err / plain if plain else 0.0
-    candidates["probe"] = {**probe.summary(), "gain": gain, "compared_on": which.replace("_", "-") + " rows of the probe",
-                           "lambert_rmse_same_rows": plain}
+    compared = which.replace("_", "-") + " rows of the probe"
+    candidates["probe"] = {**probe.summary(), "gain": gain, "compared_on": compared, "lambert_rmse_same_rows": plain}
+    probe_round = Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)
     if not probe.ks_significant or gain < min_gain:
         ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
         why = (f"is not significant (ks {ks:.3g} +- {sd:.2g})" if not probe.ks_significant else
                f"lowers the {which.replace('_', '-')} error by only {100 * gain:.2f} % (< {100 * min_gain:g} %)")
-        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}",
-                    [r0, Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)])
+        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}", [r0, probe_round])
+    # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
+    # candidates are then fitted with that light fixed (it holds a highlight-free sun, unlike
+    # Lambert's, which bends towards the highlights), from the alpha that matches the probe's
+    # lobe width (Beckmann ~ Phong: alpha^2 = 2 / (n + 2)), and get their own light in turn; the
+    # lowest held-out error of these first lights is alternated
+    tried = []
+
+    def first_light(name, material):
+        ts = time.perf_counter()
+        sol, ctx = solve_light(material)
+        e1 = sol.held_out_rmse if sol.held_out_rmse is not None else sol.fit_rmse
+        candidates.setdefault(name, {})["first_light_held_out_rmse"] = e1
+        tried.append((e1, name, material, (sol, ctx), time.perf_counter() - ts))
+        return sol
+
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
-    shifted = (lambda r: progress(replace(r, index=r.index + 1))) if progress else None
-    spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
-                     rows=rows)
-    best = spec.rounds[spec.chosen_round]
-    err = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse
-    candidates[start.model] = {"held_out_rmse": best.held_out_rmse, "fit_rmse": best.fit_rmse}
-    gain = 1.0 - err / base if base else 0.0
-    rounds = [r0] + [replace(r, index=r.index + 1) for r in spec.rounds]
+    sol1 = first_light(start.model, material)
+    if start.model != PLASTIC and plastic_starts:
+        alpha0 = float(np.sqrt(2.0 / (max(probe.material.shininess, 0.0) + 2.0)))
+        for ps in plastic_starts:
+            ps = replace(ps, kd=material.kd, ks=material.ks, roughness=float(np.clip(alpha0, 0.01, 0.7)))
+            name = f"{ps.model}-{ps.distribution}"
+            try:
+                pd = lm_data(vis, photo, sol1.light, ps, use, held_out, **_rows(chosen))
+            except FitError:
+                continue
+            pp = lm_fit(pd, ps)
+            candidates[f"probe_{name}"] = {**pp.summary(), "compared_on": compared,
+                                           "note": f"fitted with the {start.model} probe's light fixed"}
+            first_light(name, normalise(pp.material, sol1.light, kd_ref)[0])
+    tried.sort(key=lambda t: t[0])
+    # the best of each family (the Phong lobes; plastic's distributions) is alternated: one light solve
+    # cannot tell them apart (each candidate was fitted to another model's light)
+    runs, families = [], set()
+    for t in tried:
+        family = PLASTIC if t[1].startswith(PLASTIC) else "phong"
+        if family not in families:
+            families.add(family)
+            runs.append(t)
+    if note and len(tried) > 1:
+        note("reflectance candidates (held-out error under each one's first light): " + ", ".join(
+            f"{name} {100 * e1:.3f} %" for e1, name, *_ in tried) + f"; alternating {', '.join(r[1] for r in runs)}")
+    rounds = [r0]  # then the alternations' rounds (the probes are in candidates)
+    results = []
+    for e1, name, material, first, seconds in runs:
+        offset = len(rounds)
+        shifted = (lambda r, o=offset: progress(replace(r, index=r.index + o))) if progress else None
+        spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
+                         rows=rows, first=first)
+        spec.rounds[0].light_seconds = seconds
+        best = spec.rounds[spec.chosen_round]
+        e = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse
+        candidates[name].update({"held_out_rmse": best.held_out_rmse, "fit_rmse": best.fit_rmse,
+                                 "material": best.material.to_json()})
+        results.append((e, name, spec, offset))
+        rounds += [replace(r, index=r.index + offset) for r in spec.rounds]
+    e, name, spec, offset = min(results, key=lambda t: t[0])
+    gain = 1.0 - e / base if base else 0.0
+    others = "; ".join(f"{n} {100 * x:.3f} %" for x, n, *_ in results if n != name)
+    versus = f" and beats {others} (held-out {100 * e:.3f} %, each alternated with its light)" if others else ""
     if gain >= min_gain:
-        return Reflectance(spec.material, spec.solution, spec.context, rounds, spec.chosen_round + 1, "auto",
-                           f"{start.model}: lowers the held-out error by {100 * gain:.1f} % "
-                           f"(>= {100 * min_gain:g} %) over Lambertian", candidates, time.perf_counter() - t0)
-    return stay(f"lambert: a {start.model} term lowers the held-out error by only {100 * gain:.2f} % "
+        return Reflectance(spec.material, spec.solution, spec.context, rounds, offset + spec.chosen_round, "auto",
+                           f"{name}: lowers the held-out error by {100 * gain:.1f} % (>= {100 * min_gain:g} %) over "
+                           f"Lambertian{versus}", candidates, time.perf_counter() - t0)
+    return stay(f"lambert: a {name} term lowers the held-out error by only {100 * gain:.2f} % "
                 f"(< {100 * min_gain:g} %)", rounds)
+
+
+def _lambert_rmse(data, kd, which: str) -> float | None:
+    """Lambert (no lobe) on a plastic probe's rows: its base without the coating is kd D L."""
+    sel = data.fit if which == "fit" else ~data.fit
+    if not sel.any():
+        return None
+    pred = data.lambert[sel] * np.asarray(kd)[None, :]
+    r = pred - data.photo[sel]
+    return float(np.sqrt((r**2).sum() / max((data.photo[sel] ** 2).sum(), 1e-300)))

@@ -9,6 +9,8 @@ shading normal, v_j the direction to the camera and f the BRDF:
     phong         f = kd / pi + ks (n + 2) / (2 pi) max(0, R . d)^n,  R = reflect(v, N)
     phong-classic f = kd / pi + ks max(0, R . d)^n / max(N . d, eps)  (the paper's unnormalised
                   term: its radiance contribution is ks (R.d)^n L w, without the cosine)
+    plastic       f = ks F(v.h) D(h) G1(v) G1(d) / (4 N.v N.d) + kd t(N.v) t(N.d) / (pi eta^2 (1 - Fdr))
+                  (Mitsuba's roughplastic / plastic; `pipelines.model.microfacet`)
 kd and ks are RGB; the transport splits into a diffuse part D (kd = 1) and a specular part S
 (ks = 1) so that channel c renders kd_c D L_c + ks_c S L_c.
 """
@@ -20,7 +22,8 @@ import numpy as np
 from ..geometry.visibility import VisibilityData
 from ..light.cubemap import CubeMap
 from ..threads import parallel_blocks
-from .materials import Material
+from . import microfacet as mf
+from .materials import PLASTIC, Material
 
 KERNEL_ROWS = 256  # rows per block of the transport kernels: a block's scratch stays in cache
 
@@ -97,14 +100,17 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     D : (P, N) float32 diffuse transport for kd = 1;
     S : (P, N) float32 specular transport for ks = 1, or None for a Lambertian material.
     """
-    D = diffuse_transport(V, normals, cube)
+    D = diffuse_transport(V, normals, cube, material, views)
     if not material.specular:
         return D, None
     return D, specular_transport(V, normals, views, cube, material)
 
 
-def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.ndarray:
-    """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi.
+def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, material: Material | None = None,
+                      views: np.ndarray | None = None) -> np.ndarray:
+    """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi, and for a
+    `plastic` material that seen through its coating: x t(N.d_i) t(N.v) / (eta^2 (1 - Fdr)) (t at the
+    texel's centre direction; `views` needed).
 
     V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`).
     Formed in place, in blocks of rows on both cores."""
@@ -113,8 +119,14 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.n
     nrm = np.asarray(normals, np.float32)
     out = np.empty((P, N), np.float32)
     inv_pi = np.float32(1.0 / np.pi)
+    plastic = material is not None and material.model == PLASTIC
+    if plastic:
+        coat = mf.coating(material.roughness, material.ior, material.distribution)
+        d = cube.directions.astype(np.float32)
+        t_view = (coat.transmittance(np.einsum("pk,pk->p", normals, views)) * coat.base_scale).astype(np.float32)
 
     def run(starts):
+        cs = np.empty((KERNEL_ROWS, N), np.float32) if plastic else None
         for a in starts:
             sl = slice(a, min(P, a + KERNEL_ROWS))
             o = out[sl]
@@ -122,8 +134,49 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap) -> np.n
             np.maximum(o, 0.0, out=o)
             o *= V[sl]
             o *= inv_pi
+            if plastic:
+                c = cs[: sl.stop - sl.start]
+                np.matmul(nrm[sl], d.T, out=c)
+                o *= coat.transmittance(c).astype(np.float32)
+                o *= t_view[sl, None]
 
     parallel_blocks(run, list(range(0, P, KERNEL_ROWS)))
+    return out
+
+
+def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
+                               material: Material) -> np.ndarray:
+    """(P, N) float32 the coating's lobe (ks = 1): V w_i F(v.h) D(h) G1(v) G1(d_i) / (4 N.v) at the texel
+    centres, with the texel-widened roughness (`microfacet.lobe_factors`, `lobe_values`); blocks of
+    rows on both cores."""
+    P, N = len(normals), cube.n_texels
+    d = cube.directions.astype(np.float32)
+    w = cube.solid_angles.astype(np.float32)[None, :]
+    nrm = np.asarray(normals, np.float32)
+    vw = np.asarray(views, np.float32)
+    nv_all = np.einsum("pk,pk->p", nrm, vw)
+    alpha, dist, eta = float(material.roughness), material.distribution, float(material.ior)
+    g1v_all = mf.smith_g1((1.0 - np.minimum(nv_all, 1.0) ** 2) / np.maximum(nv_all, 1e-6) ** 2, alpha,
+                          dist).astype(np.float32)
+    out = np.empty((P, N), np.float32)
+    b = min(KERNEL_ROWS, max(P, 1))
+
+    def run(blocks):
+        nd, vd = np.empty((b, N), np.float32), np.empty((b, N), np.float32)
+        for a in blocks:
+            sl = slice(a, min(P, a + b))
+            k = sl.stop - sl.start
+            np.matmul(nrm[sl], d.T, out=nd[:k])
+            np.matmul(vw[sl], d.T, out=vd[:k])
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta)
+            o = out[sl]
+            mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
+            o *= A
+            o *= mf.smith_g1(t2d, alpha, dist)
+            o *= g1v_all[sl, None]
+            o *= V[sl]
+
+    parallel_blocks(run, list(range(0, P, b)))
     return out
 
 
@@ -135,6 +188,8 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     Computed in blocks of rows with reused scratch arrays and c^n = exp(n log c): the same numbers
     as `specular_factors` to float32 rounding, several times faster (no (P, N) temporaries; numpy's
     float32 power is not vectorised, exp and log are)."""
+    if material.model == PLASTIC:
+        return plastic_specular_transport(V, normals, views, cube, material)
     P, N = len(normals), cube.n_texels
     model = material.model
     if model not in ("blinn-phong", "phong", "phong-classic"):

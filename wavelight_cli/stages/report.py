@@ -245,7 +245,9 @@ def _reflectance(doc: Doc, refl: dict, made: dict):
     if not refl:
         s.p("No reflectance.json.")
         return
-    s.p(f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, n {refl.get('n')}, "
+    lobe = (f"alpha {refl.get('alpha')} ({refl.get('distribution')}, IOR {refl.get('ior')})"
+            if refl.get("model") == "plastic" else f"n {refl.get('n')}")
+    s.p(f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, {lobe}, "
         f"ks/kd {refl.get('ks_over_kd')}. Decision: {refl.get('decision', '–')}.")
     rounds = figs.reflectance_rounds(refl)
     probe = figs.probe_result(refl)
@@ -277,8 +279,7 @@ def _reflectance(doc: Doc, refl: dict, made: dict):
         s.table(["round", "what", "material", "fit", "held-out", "kept"],
                 [[str(r["round"]) if r["kind"] == "light" else "probe", what[r["kind"]],
                   f"{r['model']} kd {_rgb(r['material'].get('kd'))}"
-                  + (f", ks {_rgb(r['material'].get('ks'))}, n {_num(r['material'].get('n'), '.3g')}"
-                     if r["model"] != "lambert" else ""),
+                  + (f", ks {_rgb(r['material'].get('ks'))}, " + _lobe(r["material"]) if r["model"] != "lambert" else ""),
                   _pct(r["fit_rmse"]), held(r), "**kept**" if r["kept"] else "not kept"]
                  for r in rounds], "rlllrl")
 
@@ -383,8 +384,14 @@ def _material(m) -> str:
         return "–"
     text = f"{m.get('model')} kd {_rgb(m.get('kd'))}"
     if m.get("model") != "lambert":
-        text += f", ks {_rgb(m.get('ks'))}, n {_num(m.get('n'), '.3g')}"
+        text += f", ks {_rgb(m.get('ks'))}, " + _lobe(m)
     return text
+
+
+def _lobe(m: dict) -> str:
+    if m.get("model") == "plastic":
+        return f"alpha {_num(m.get('alpha'), '.3g')} ({m.get('distribution')})"
+    return f"n {_num(m.get('n'), '.3g')}"
 
 
 EXPORT_TOOLS = (  # folder, tool, how to use (README: Relight, insert, export, report; pipelines/io/exports.py)

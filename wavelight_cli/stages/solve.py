@@ -28,7 +28,8 @@ from .visibility import visibility_stage
 VERSION = 7  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
-#   from the rows, forced specular rounds all on the same rows
+#   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
+#   (candidates, decision), plastic fields in reflectance.json
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 

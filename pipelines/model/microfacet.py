@@ -1,0 +1,353 @@
+"""The microfacet dielectric (`plastic`): a rough dielectric coating over a diffuse base, as Mitsuba 3's
+`roughplastic` (alpha > 0) and `plastic` (alpha = 0), both with nonlinear = false.
+
+With v the direction to the camera, d a light direction, N the shading normal, h = (v + d)/|v + d|,
+eta the coating's index of refraction relative to the outside:
+
+    f(v, d) = ks F(v.h) D(h) G1(v, h) G1(d, h) / (4 (N.v)(N.d))
+            + kd / (pi eta^2 (1 - Fdr)) t(N.v) t(N.d)
+
+- D: GGX, D = 1 / (pi a^2 cos^4 (1 + tan^2 / a^2)^2), or Beckmann, D = exp(-tan^2 / a^2) / (pi a^2 cos^4)
+  (theta_h from N); G1: Smith's for the same distribution (GGX exactly, 2 / (1 + sqrt(1 + a^2 tan^2));
+  Beckmann by Mitsuba's rational fit, < 0.35 % off), separable: G = G1(v) G1(d);
+- F: the unpolarised Fresnel reflectance of the dielectric (total internal reflection included);
+- t(mu): the coating's transmittance at incidence cosine mu, 1 - F(mu) when smooth; when rough, the
+  mean over the visible normals of (1 - F) G1 of the refracted direction, on Mitsuba's table of 64
+  cosines (linear interpolation), computed by Mitsuba's own quadrature (`coating`);
+- Fdr: the coating's mean reflectance from inside (internal reflection, diffuse incidence): smooth,
+  Mitsuba's fit `fresnel_diffuse_reflectance(1 / eta)`; rough, 2 x the mean over the 64 cosines of
+  mu R_int(mu) (Mitsuba's rule).
+- ks = 1 is the physical coating (Mitsuba's specular_reflectance).
+
+Energy: the specular lobe reflects at most F <= 1 of what arrives (a Smith microfacet lobe's albedo is
+<= 1) and the base at most kd (1 - F) (the light the coating lets through, kd < 1): for kd <= 1 and
+ks <= 1 the model never reflects more than it receives (checked numerically in the tests).
+
+The lobe at texel resolution: a texel stands for a constant radiance over its solid angle, so the
+transport wants the lobe integrated over the texel. Where the lobe is much wider than a texel the
+centre value is that integral; where it is narrower (alpha ~ 0.01 at R = 32, and the smooth `plastic`)
+the centre value aliases. The lobe is therefore evaluated with a texel-widened roughness
+a_eff^2 = a^2 + w_i / (24 (v.h) cos^3 theta_h), the slope-space variance of the texel's footprint
+(solid angle w_i, seen through the half vector) added to the distribution's (a Gaussian blur of the
+lobe by the texel, exact in variance for Beckmann, its core for GGX; the lobe's integral is kept).
+At R = 32 that adds ~0.01 in quadrature: alpha = 0.05 becomes 0.051, a smooth coating's mirror
+becomes a lobe one texel wide. Shadowing G1 uses the true alpha.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+DISTRIBUTIONS = ("ggx", "beckmann")
+DEFAULT_IOR = 1.49  # a typical plastic / glaze / varnish (Mitsuba's polypropylene; Blender's default 1.5)
+IOR_RANGE = (1.05, 3.0)  # a dielectric coating's index relative to the outside medium
+TABLE_SIZE = 64  # Mitsuba's MI_ROUGH_TRANSMITTANCE_RES
+MIN_ALPHA = 1e-4  # Mitsuba clamps its roughness here
+_MU = np.maximum(1e-6, np.linspace(0.0, 1.0, TABLE_SIZE))
+
+
+def fresnel(cos_i, eta):
+    """Unpolarised Fresnel reflectance of a dielectric interface (Mitsuba's `fresnel`): cos_i the
+    incidence cosine (negative: from inside), eta the inside's index over the outside's. Returns
+    (F, cos_t signed as Mitsuba's, eta_ti)."""
+    c = np.asarray(cos_i, np.float64)
+    outside = c >= 0
+    eta_it = np.where(outside, eta, 1.0 / eta)
+    eta_ti = 1.0 / eta_it
+    ct2 = 1.0 - (1.0 - c * c) * eta_ti * eta_ti
+    ci = np.abs(c)
+    ct = np.sqrt(np.maximum(ct2, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a_s = (ci - eta_it * ct) / (ci + eta_it * ct)
+        a_p = (ct - eta_it * ci) / (ct + eta_it * ci)
+    r = 0.5 * (a_s * a_s + a_p * a_p)
+    r = np.where((ci == 0) | ~np.isfinite(r), 1.0, r)
+    return r, np.where(outside, -ct, ct), eta_ti
+
+
+def fresnel_diffuse_reflectance(eta: float) -> float:
+    """Mitsuba's fit of the diffuse (hemispherically averaged) Fresnel reflectance."""
+    inv = 1.0 / eta
+    if eta < 1:
+        return 0.0636 * inv + eta * (eta * -1.4399 + 0.7099) + 0.6681
+    return float(np.polyval([-1.36881, 4.98554, -7.80989, 6.75335, -3.4793, 0.919317], inv))
+
+
+def smith_g1(tan2, alpha, distribution: str, derivative: bool = False):
+    """Smith's G1 for a direction with tan^2 theta = tan2 (from the normal), roughness alpha
+    (Mitsuba's; Beckmann by its rational fit); with `derivative`, also dG1 / d log alpha."""
+    t = np.asarray(tan2)
+    xy = (alpha * alpha) * t  # tan^2 theta alpha^2
+    if distribution == "ggx":
+        s = np.sqrt(1.0 + xy)
+        g = 2.0 / (1.0 + s)
+        if not derivative:
+            return g
+        return g, -g * g / 2.0 * xy / s
+    with np.errstate(divide="ignore"):
+        a = 1.0 / np.sqrt(xy)
+    a = np.where(np.isfinite(a), a, 1e30)
+    big = a >= 1.6
+    a = np.where(big, 1.6, a)
+    num = 3.535 * a + 2.181 * a * a
+    den = 1.0 + 2.276 * a + 2.577 * a * a
+    g = np.where(big, 1.0, num / den)
+    if not derivative:
+        return g
+    dg_da = ((3.535 + 4.362 * a) * den - num * (2.276 + 5.154 * a)) / (den * den)
+    return g, np.where(big, 0.0, -a * dg_da)  # da / d log alpha = -a
+
+
+def ndf(cos_h, alpha, distribution: str):
+    """The distribution D(h) (per unit solid angle of h) for cos theta_h = cos_h."""
+    c2 = np.asarray(cos_h, np.float64) ** 2
+    t2 = (1.0 - c2) / np.maximum(c2, 1e-300)
+    a2 = alpha * alpha
+    if distribution == "ggx":
+        return 1.0 / (np.pi * a2 * c2 * c2 * (1.0 + t2 / a2) ** 2)
+    return np.exp(-t2 / a2) / (np.pi * a2 * c2 * c2)
+
+
+# -- Mitsuba's coating tables ---------------------------------------------------------------------
+def _concentric(u1, u2):
+    x, y = 2.0 * u1 - 1.0, 2.0 * u2 - 1.0
+    q13 = np.abs(x) < np.abs(y)
+    r = np.where(q13, y, x)
+    rp = np.where(q13, x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        phi = 0.25 * np.pi * rp / r
+    phi = np.where(q13, 0.5 * np.pi - phi, phi)
+    phi = np.where((x == 0) & (y == 0), 0.0, phi)
+    return r * np.cos(phi), r * np.sin(phi)
+
+
+def _visible_11(cos_i, u1, u2, distribution):
+    """Mitsuba's sample_visible_11: slopes of the alpha = 1 distribution of visible normals (cos_i a
+    column of incidence cosines, u1 and u2 rows of samples)."""
+    if distribution == "ggx":
+        px, py = _concentric(u1, u2)
+        s = 0.5 * (1.0 + cos_i)
+        py = np.sqrt(np.maximum(1.0 - px * px, 0.0)) * (1.0 - s) + py * s
+        z = np.sqrt(np.maximum(1.0 - px * px - py * py, 0.0))
+        sin_i = np.sqrt(np.maximum(1.0 - cos_i * cos_i, 0.0))
+        norm = 1.0 / (sin_i * py + cos_i * z)
+        return (cos_i * py - sin_i * z) * norm, px * norm
+    from scipy.special import erf, erfinv
+
+    tan_i = np.sqrt(np.maximum(1.0 - cos_i * cos_i, 0.0)) / cos_i
+    cot_i = 1.0 / tan_i
+    maxval = erf(cot_i)
+    u1 = np.clip(u1, 1e-6, 1.0 - 1e-6)
+    u2 = np.clip(u2, 1e-6, 1.0 - 1e-6)
+    x = maxval - (maxval + 1.0) * erf(np.sqrt(-np.log(u1)))
+    u1 = u1 * (1.0 + maxval + tan_i * np.exp(-cot_i * cot_i) / np.sqrt(np.pi))
+    for _ in range(3):
+        slope = erfinv(x)
+        value = 1.0 + x + tan_i * np.exp(-slope * slope) / np.sqrt(np.pi) - u1
+        x = x - value / (1.0 - slope * tan_i)
+    return erfinv(x), np.broadcast_to(erfinv(2.0 * u2 - 1.0), x.shape)
+
+
+def _coating_integral(alpha: float, eta: float, distribution: str, transmit: bool) -> np.ndarray:
+    """Mitsuba's eval_transmittance (transmit) / eval_reflectance over the 64 table cosines: the mean
+    over the visible normals (Gauss-Legendre, 32^2 nodes for eta > 1, else 128^2) of (1 - F) G1 of the
+    refracted direction, or F G1 of the reflected one."""
+    n = 32 if eta > 1 else 128
+    x, w = np.polynomial.legendre.leggauss(n)
+    u1, u2 = np.meshgrid(0.5 * x + 0.5, 0.5 * x + 0.5, indexing="xy")
+    wt = (np.outer(w, w) * 0.25).ravel()
+    u1, u2 = u1.ravel()[None, :], u2.ravel()[None, :]
+    out = np.empty(TABLE_SIZE)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for rows in np.array_split(np.arange(TABLE_SIZE), max(1, (TABLE_SIZE * n * n) // 262144)):
+            mu = _MU[rows][:, None]
+            wx, wz = np.sqrt(1.0 - mu * mu), mu
+            # stretch (isotropic, wi in the x-z plane: phi = 0), sample the alpha = 1 slopes, unstretch
+            norm = np.sqrt((alpha * wx) ** 2 + wz**2)
+            sx, sy = _visible_11(wz / norm, u1, u2, distribution)
+            mx, my = -alpha * sx, -alpha * sy
+            inv = 1.0 / np.sqrt(mx * mx + my * my + 1.0)
+            mx, my, mz = mx * inv, my * inv, inv
+            dm = wx * mx + wz * mz
+            f, cos_t, eta_ti = fresnel(dm, eta)
+            if transmit:
+                k = dm * eta_ti + cos_t
+                ox, oy, oz = mx * k - wx * eta_ti, my * k, mz * k - wz * eta_ti
+                ok = oz * wz < 0
+                weight = 1.0 - f
+            else:
+                ox, oy, oz = 2.0 * dm * mx - wx, 2.0 * dm * my, 2.0 * dm * mz - wz
+                ok = oz > 0
+                weight = f
+            xy = ox * ox + oy * oy
+            g = smith_g1(xy / (oz * oz), alpha, distribution)
+            g = np.where(xy == 0, 1.0, g)
+            g = np.where((ox * mx + oy * my + oz * mz) * oz <= 0, 0.0, g)
+            out[rows] = np.where(ok, g * weight, 0.0) @ wt
+    return out
+
+
+@dataclass(frozen=True)
+class Coating:
+    """What the diffuse base sees of the coating: t on the 64 cosines (rough) or 1 - F (smooth),
+    Fdr and the base's constant 1 / (eta^2 (1 - Fdr))."""
+
+    alpha: float
+    eta: float
+    distribution: str
+    table: np.ndarray  # (64,) t at Mitsuba's cosines
+    fdr: float
+
+    @property
+    def smooth(self) -> bool:
+        return self.alpha <= 0
+
+    @property
+    def base_scale(self) -> float:
+        return 1.0 / (self.eta**2 * (1.0 - self.fdr))
+
+    def transmittance(self, mu):
+        """t(mu) for incidence cosines mu in [0, 1] (0 below)."""
+        mu = np.asarray(mu)
+        if self.smooth:
+            out = 1.0 - fresnel(np.clip(mu, 0.0, 1.0), self.eta)[0]
+        else:
+            x = np.clip(mu, 0.0, 1.0) * (TABLE_SIZE - 1)
+            i = np.minimum(x.astype(np.int64), TABLE_SIZE - 2)
+            out = self.table[i] + (self.table[i + 1] - self.table[i]) * (x - i)
+        return np.where(mu > 0, out, 0.0)
+
+
+@lru_cache(maxsize=256)
+def coating(alpha: float, eta: float, distribution: str) -> Coating:
+    """The coating of a material (cached: a rough one costs two quadratures, ~0.1-0.3 s)."""
+    if distribution not in DISTRIBUTIONS:
+        raise ValueError(f"unknown microfacet distribution {distribution!r}; choose one of {DISTRIBUTIONS}")
+    alpha, eta = float(alpha), float(eta)
+    if alpha <= 0:
+        table = 1.0 - fresnel(_MU, eta)[0]
+        return Coating(0.0, eta, distribution, table, fresnel_diffuse_reflectance(1.0 / eta))
+    a = max(alpha, MIN_ALPHA)
+    t = _coating_integral(a, eta, distribution, True)
+    r = _coating_integral(a, 1.0 / eta, distribution, False)
+    return Coating(alpha, eta, distribution, t, float(np.mean(r * _MU) * 2.0))
+
+
+def transmittance_table(alpha: float, eta: float, distribution: str) -> np.ndarray:
+    """t on the 64 table cosines alone (no Fdr: the cheap half of `coating`, for the fit)."""
+    if alpha <= 0:
+        return 1.0 - fresnel(_MU, eta)[0]
+    return _transmittance_cached(float(alpha), float(eta), distribution)
+
+
+@lru_cache(maxsize=512)
+def _transmittance_cached(alpha, eta, distribution):
+    return _coating_integral(max(alpha, MIN_ALPHA), eta, distribution, True)
+
+
+def table_weights(mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mitsuba's linear interpolation on the table: t(mu) = (1 - f) t[i] + f t[i + 1]; returns (i, f)."""
+    x = np.clip(mu, 0.0, 1.0) * (TABLE_SIZE - 1)
+    i = np.minimum(x.astype(np.int64), TABLE_SIZE - 2)
+    return i, (x - i)
+
+
+# -- the specular lobe in blocks (transport kernel and LM share it) ---------------------------------
+TEXEL_BLUR = 0.25  # the light's blur inside a texel: variance TEXEL_BLUR x w_i per axis (w_i its solid angle)
+
+
+def lobe_factors(nd, nv, vd, w, eta, blur: float = TEXEL_BLUR):
+    """Per (pixel, texel) parts of the lobe that do not depend on alpha, from N.d (nd), N.v (nv, a
+    column), v.d (vd) and the texels' solid angles w (a row; 0 for a point evaluation), float32 blocks.
+
+    Returns (A, x2, y2, wx, wy, t2d): A = w F(v.h) / (4 N.v cos^4 h) [0 where N.d or N.v <= 0]; the
+    half vector's squared slopes in the plane of incidence (x2, along v's tangent) and across it (y2);
+    the roughness^2 the texel adds along each (wx, wy); tan^2 of d (for G1). The radiance of light L
+    through the lobe is L A Dn G1(v) G1(d) with Dn = D cos^4 h of roughness^2 (a^2 + wx, a^2 + wy)
+    (`lobe_values`).
+
+    The texel's blur: a texel's radiance is spread over its solid angle, which a lobe narrower than a
+    texel must not alias. The light is blurred inside the texel with variance `blur` x w per axis of
+    the light direction (1/4: a Gaussian that wide summed over texel centres one sqrt(w) apart is its
+    integral to ~1.4 %, wherever its peak falls; the texel's own box has w/12 and ripples by ~40 %;
+    a wider blur ripples less but softens a sun's highlight more, measured against Mitsuba in
+    tests/test_plastic_mitsuba.py), mapped to the half vector (in the plane of incidence d turns twice
+    as fast as h, across it 2 v.h times as fast) and to its slopes (1/cos^2 h along, 1/cos h across),
+    and added to the distribution's slope variance (a^2 / 2 per axis: exact for Beckmann, the core
+    for GGX). The lobe's integral is unchanged."""
+    vh2 = np.maximum(0.5 * (1.0 + vd), 1e-12)  # (v.h)^2 = (1 + v.d) / 2
+    vh = np.sqrt(vh2)
+    s_ = nv + nd  # (v + d).N; |v + d| = 2 v.h
+    nh = np.clip(s_ / (2.0 * vh), 1e-6, 1.0)
+    c2 = nh * nh
+    t2h = (1.0 - c2) / c2
+    sv = np.sqrt(np.maximum(1.0 - nv * nv, 1e-12))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = (sv + (vd - nv * nd) / sv) / np.maximum(s_, 1e-6)  # (v + d) . t_v / (v + d) . N
+    t2h = np.minimum(t2h, 1e6)  # (theta_h < 89.94 deg: beyond, D is nil; keeps float32 finite)
+    c2 = 1.0 / (1.0 + t2h)
+    x2 = np.minimum(x * x, t2h)
+    y2 = t2h - x2
+    F = fresnel(vh, eta)[0].astype(np.float32)
+    up = (nd > 0) & (nv > 0)
+    A = np.where(up, w * F / (4.0 * np.maximum(nv, 1e-6) * c2 * c2), 0.0).astype(np.float32)
+    var = blur * w / 4.0 * 2.0  # light-direction variance / 4 (h turns half as fast), x 2 (alpha^2 = 2 sigma^2)
+    wx = (var / (c2 * c2)).astype(np.float32)
+    wy = (var / (np.maximum(nv * nv, 1e-4) * c2)).astype(np.float32)  # v.h at the lobe's peak (h = N): N.v
+    ndc = np.clip(nd, 1e-6, 1.0)
+    t2d = ((1.0 - ndc * ndc) / (ndc * ndc)).astype(np.float32)
+    return A, x2.astype(np.float32), y2.astype(np.float32), wx, wy, t2d
+
+
+def lobe_values(x2, y2, wx, wy, alpha: float, distribution: str, out=None, derivative_out=None):
+    """Dn = D(h) cos^4(h) of the anisotropic distribution with roughness^2 (alpha^2 + wx, alpha^2 + wy)
+    along the slopes (x2, y2) (float32 blocks), into `out`; with `derivative_out`, also
+    dDn / d log alpha there."""
+    a2 = np.float32(alpha * alpha)
+    ax = wx + a2
+    ay = wy + a2
+    q = x2 / ax
+    q += y2 / ay
+    norm = np.sqrt(ax * ay)
+    norm *= np.float32(np.pi)
+    if distribution == "ggx":  # Dn = 1 / (pi ax ay (1 + x2/ax2 + y2/ay2)^2)
+        q += np.float32(1.0)
+        if derivative_out is not None:  # d log Dn / d ax2 = -1/(2 ax2) + 2 x2 / (ax2^2 q)
+            np.divide(x2 / (ax * ax) + y2 / (ay * ay), q, out=derivative_out)
+            derivative_out *= np.float32(2.0)
+        res = np.multiply(q, q, out=np.empty_like(x2) if out is None else out)
+        res *= norm
+        np.divide(np.float32(1.0), res, out=res)
+    else:  # Dn = exp(-(x2/ax2 + y2/ay2)) / (pi ax ay)
+        if derivative_out is not None:  # d log Dn / d ax2 = x2 / ax2^2 - 1/(2 ax2)
+            np.add(x2 / (ax * ax), y2 / (ay * ay), out=derivative_out)
+        res = np.negative(q, out=np.empty_like(x2) if out is None else out)
+        np.exp(res, out=res)
+        res /= norm
+    if derivative_out is not None:
+        derivative_out -= np.float32(0.5) / ax
+        derivative_out -= np.float32(0.5) / ay
+        derivative_out *= res
+        derivative_out *= np.float32(2.0) * a2
+    return res
+
+
+def eval_cos(kd, ks, alpha: float, eta: float, distribution: str, nv, nd, vd) -> tuple[np.ndarray, np.ndarray]:
+    """The BRDF times the light's cosine, f(v, d) max(0, N.d), pointwise (no texel widening): the
+    diffuse and the specular part for cosines N.v (nv), N.d (nd) and v.d (vd) of equal shapes;
+    kd and ks scalars. What Mitsuba's `BSDF.eval` returns for roughplastic (the tests compare)."""
+    nv, nd, vd = (np.asarray(x, np.float64) for x in (nv, nd, vd))
+    coat = coating(alpha, eta, distribution)
+    up = (nv > 0) & (nd > 0)
+    diffuse = np.where(up, kd * coat.base_scale * coat.transmittance(nv) * coat.transmittance(nd) * nd / np.pi, 0.0)
+    if alpha <= 0:
+        return diffuse, np.zeros_like(diffuse)
+    A, x2, y2, wx, wy, t2d = lobe_factors(nd, nv, vd, np.float64(1.0), eta, blur=0.0)
+    a = max(float(alpha), MIN_ALPHA)
+    g1v = smith_g1((1.0 - np.minimum(nv, 1.0) ** 2) / np.maximum(nv, 1e-6) ** 2, a, distribution)
+    f64 = [np.asarray(v, np.float64) for v in (x2, y2, wx, wy)]
+    spec = ks * A * lobe_values(*f64, a, distribution) * smith_g1(t2d, a, distribution) * g1v
+    return diffuse, np.where(up, spec, 0.0)

@@ -1,0 +1,333 @@
+"""The `plastic` reflectance fit with the light fixed: kd (RGB), ks (RGB) and log alpha by
+Levenberg-Marquardt (bounded: trust-region reflective), for `reflectance.alternate` and `select`.
+
+With the light fixed, pixel j's channel c renders
+
+    I_jc = kd_c B_jc(alpha) + ks_c S_jc(alpha)
+    B_jc = b(alpha) t(N.v_j) sum_i D_ij t(N.d_i) L_ic          (the base seen through the coating)
+    S_jc = G1(v_j) sum_i A_ij Dn_ij(alpha) G1(d_i) L_ic        (the coating's lobe, `microfacet`)
+
+D_ij = V max(0, N.m_i) / pi and A_ij = V w_i F(v.h) / (4 N.v cos^4 h) do not depend on alpha and are
+computed once per light over the lit texels (`plastic_data`), with the slopes of the half vector and
+N.d; an evaluation is then a few float32 passes over (pixel, lit texel) pairs. The base's constant
+b(alpha) = 1 / (eta^2 (1 - Fdr(alpha))) costs a quadrature of its own, so the LM fits kd' = kd b(alpha)
+and kd = kd' / b(alpha) at the end; t's derivative with respect to log alpha is the table's central
+difference (the tables cost milliseconds), the lobe's is analytic. The IOR and the distribution are
+the start's (given, or 1.49 and ggx). A scan over alpha (kd', ks >= 0 exact at each alpha) guards the
+start, as the Blinn-Phong fit's scan over n does.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares, nnls
+
+from ..geometry.visibility import decode
+from ..threads import parallel_blocks
+from . import microfacet as mf
+from .materials import PLASTIC, Material
+
+ALPHA_RANGE = (0.005, 1.0)  # a fitted alpha is kept inside this (log-parametrised bounds)
+SCAN_ALPHA = (0.01, 0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6)  # the start's guard (factors <= 2)
+MAX_PAIRS = 24_000_000  # (pixel, lit texel) pairs held (6 float32 arrays: ~580 MB)
+_BLOCK = 256
+_DLOG = 0.02  # the tables' central difference in log alpha
+
+
+@dataclass
+class PlasticData:
+    """The LM's inputs for one light (see the module's docstring): per (row, lit texel) float32 arrays
+    of the lobe's alpha-free parts, rows weighted by sqrt(weight); the base as Q, its sum over the
+    lit texels against each of the 64 hat functions of the transmittance table's linear
+    interpolation (t(N.d) = sum_k T_k(alpha) hat_k(N.d)), so that B'(alpha) = t(N.v) Q T(alpha)."""
+
+    model: str
+    distribution: str
+    ior: float
+    Q: np.ndarray  # (P, 64, 3) sum_i D_i hat_k(N.d_i) L_i, x sqrt(weight)
+    lambert: np.ndarray  # (P, 3) sum_i D_i L_i (Lambert's shading), x sqrt(weight)
+    A: np.ndarray  # V w F / (4 N.v cos^4 h), x sqrt(weight)
+    x2: np.ndarray  # the half vector's slopes^2 along the plane of incidence
+    y2: np.ndarray  # and across it
+    wx: np.ndarray  # the texel blur's roughness^2 along
+    wy: np.ndarray  # and across
+    t2d: np.ndarray  # tan^2 of the light direction
+    nv: np.ndarray  # (P,) N.v
+    light: np.ndarray  # (K, 3)
+    photo: np.ndarray  # (P, 3) x sqrt(weight)
+    fit: np.ndarray  # (P,) bool
+    n_pixels_available: int
+    lit_texels: int
+    rows: np.ndarray
+
+    def evaluate(self, alpha: float, derivative: bool = False):
+        """(B', S) (P, 3) each: the base without b(alpha) and the lobe; with `derivative` also their
+        derivatives with respect to log alpha."""
+        a = float(alpha)
+        dist = self.distribution
+        T = mf.transmittance_table(a, self.ior, dist)
+        tv = np.interp(self.nv, mf._MU, T) * (self.nv > 0)
+        Bq = np.einsum("pkc,k->pc", self.Q, T)
+        g1v = mf.smith_g1((1.0 - np.minimum(self.nv, 1.0) ** 2) / np.maximum(self.nv, 1e-6) ** 2, a, dist,
+                          derivative=derivative)
+        if derivative:
+            dT = (mf.transmittance_table(a * np.exp(_DLOG), self.ior, dist)
+                  - mf.transmittance_table(a * np.exp(-_DLOG), self.ior, dist)) / (2 * _DLOG)
+            dtv = np.interp(self.nv, mf._MU, dT) * (self.nv > 0)
+            dBq = np.einsum("pkc,k->pc", self.Q, dT)
+            g1v, dg1v = g1v
+        L = self.light.astype(np.float32)
+        P = len(self.nv)
+        S0 = np.empty((P, 3))
+        dS0 = np.empty((P, 3)) if derivative else None
+
+        def run(starts):
+            for s in starts:
+                sl = slice(s, min(P, s + _BLOCK))
+                dDn = np.empty_like(self.x2[sl]) if derivative else None
+                e = mf.lobe_values(self.x2[sl], self.y2[sl], self.wx[sl], self.wy[sl], a, dist, derivative_out=dDn)
+                g = mf.smith_g1(self.t2d[sl], a, dist, derivative=derivative)
+                if derivative:
+                    g, dg = g
+                    dDn *= g
+                    dDn += e * np.asarray(dg, np.float32)
+                    dDn *= self.A[sl]
+                    dS0[sl] = dDn @ L
+                e *= np.asarray(g, np.float32)
+                e *= self.A[sl]
+                S0[sl] = e @ L
+
+        parallel_blocks(run, list(range(0, P, _BLOCK)))
+        B = Bq * tv[:, None]
+        S = S0 * g1v[:, None]
+        if not derivative:
+            return B, S
+        dB = Bq * dtv[:, None] + dBq * tv[:, None]
+        dS = dS0 * g1v[:, None] + S0 * dg1v[:, None]
+        return B, S, dB, dS
+
+
+def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
+                 rows=None, weights=None, max_pairs: int = MAX_PAIRS) -> PlasticData:
+    """Precompute the LM's inputs for a light (N, 3), as `reflectance.specular_data` (same
+    arguments; `material` gives the IOR and the distribution)."""
+    from .reflectance import LIT_TOL, MIN_FIT_PIXELS, FitError, _pixel_subset
+
+    L = np.asarray(light, dtype=np.float64)
+    if L.ndim == 1:
+        L = np.repeat(L[:, None], 3, axis=1)
+    lit = np.flatnonzero(np.any(np.abs(L) > LIT_TOL, axis=1))
+    if len(lit) == 0:
+        raise FitError("the light is zero everywhere: there is no highlight to fit")
+    P = vis.n_pixels
+    use = np.ones(P, bool) if use is None else np.asarray(use, bool)
+    held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
+    n_fit = int((use & ~held_out).sum())
+    if n_fit < MIN_FIT_PIXELS:
+        raise FitError(f"{n_fit} pixels are left to fit the reflectance to; a specular term (7 unknowns) needs "
+                       f"at least {MIN_FIT_PIXELS}")
+    if rows is None:
+        rows = _pixel_subset(use, max(1, max_pairs // len(lit)))
+        weights = None
+    else:
+        keep = use[rows]
+        rows = np.asarray(rows, np.int64)[keep]
+        weights = None if weights is None else np.asarray(weights, np.float64)[keep]
+        if len(rows) * len(lit) > max_pairs:  # an evenly spread part of the rows' order
+            pick = _pixel_subset(np.ones(len(rows), bool), max(1, max_pairs // len(lit)))
+            w = None if weights is None else weights * weights.sum() / max(weights[pick].sum(), 1e-300)
+            rows, weights = rows[pick], None if w is None else w[pick]
+        order = np.argsort(rows)
+        rows = rows[order]
+        weights = None if weights is None else weights[order]
+    s, cube = vis.samples, vis.cube
+    K, n = len(lit), len(rows)
+    arrays = {k: np.empty((n, K), np.float32) for k in ("A", "x2", "y2", "wx", "wy", "t2d")}
+    Q = np.zeros((n, mf.TABLE_SIZE, 3))
+    lam = np.empty((n, 3))
+    dirs = cube.directions[lit].astype(np.float32)
+    m = cube.vector_solid_angles[lit].astype(np.float32)
+    w = cube.solid_angles[lit].astype(np.float32)[None, :]
+    nv = np.einsum("pk,pk->p", s.normal[rows], s.view[rows])
+    L32 = L[lit].astype(np.float32)
+    out = 0
+    for first in range(0, P, 2048):  # blocks of stored rows, keeping the selected ones
+        r = rows[(rows >= first) & (rows < first + 2048)]
+        if len(r) == 0:
+            continue
+        V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)[:, lit].astype(np.float32)
+        nrm = s.normal[r].astype(np.float32)
+        vw = s.view[r].astype(np.float32)
+        k = slice(out, out + len(r))
+        D = np.maximum(nrm @ m.T, 0.0) * V / np.float32(np.pi)
+        lam[k] = D @ L32
+        nd = nrm @ dirs.T
+        x = np.clip(nd, 0.0, 1.0) * np.float32(mf.TABLE_SIZE - 1)  # the table's hat functions at N.d
+        i = np.minimum(x.astype(np.int32), mf.TABLE_SIZE - 2)
+        f = x - i
+        nb, T = len(r), mf.TABLE_SIZE
+        idx = (np.arange(nb, dtype=np.int64)[:, None] * T + i).ravel()
+        lo_w, hi_w = (D * (1 - f)).ravel(), (D * f).ravel()
+        for c in range(3):  # Q[row, j] += D (1 - f) L, Q[row, j + 1] += D f L (the two hats of each pair)
+            Lc = np.broadcast_to(L32[None, :, c], D.shape).ravel()
+            Q[k, :, c] += np.bincount(idx, lo_w * Lc, minlength=nb * T).reshape(nb, T)
+            Q[k, :, c] += np.bincount(idx + 1, hi_w * Lc, minlength=nb * T + 1)[: nb * T].reshape(nb, T)
+        A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
+        arrays["A"][k] = A * V
+        arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
+        out += len(r)
+    values = np.asarray(photo, np.float64)[rows]
+    if weights is not None:
+        sw = np.sqrt(weights)
+        arrays["A"] *= sw.astype(np.float32)[:, None]
+        Q *= sw[:, None, None]
+        lam *= sw[:, None]
+        values = values * sw[:, None]
+    a = arrays
+    return PlasticData(PLASTIC, material.distribution, float(material.ior), Q, lam, a["A"], a["x2"], a["y2"], a["wx"],
+                       a["wy"], a["t2d"], nv, L[lit], values, ~held_out[rows], int(use.sum()), K, rows)
+
+
+def base_scale(alpha: float, ior: float, distribution: str) -> float:
+    return mf.coating(float(alpha), float(ior), distribution).base_scale
+
+
+def _linear_fit(data: PlasticData, alpha: float):
+    """Best kd' (3) and ks (3) >= 0 at a fixed alpha (per channel a 2-column NNLS) and the squared
+    residual over the fit rows."""
+    f = data.fit
+    B, S = data.evaluate(alpha)
+    coef, sq = np.zeros(6), 0.0
+    for c in range(3):
+        design = np.column_stack([B[f, c], S[f, c]])
+        scale = np.sqrt((design**2).sum(axis=0))
+        scale[scale == 0] = 1.0
+        x, rnorm = nnls(design / scale, data.photo[f, c], maxiter=50)
+        coef[c], coef[3 + c] = x / scale
+        sq += float(rnorm**2)
+    return coef, sq
+
+
+def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, guard: bool = True):
+    """Fit kd, ks (RGB) and alpha with the light fixed; returns a `reflectance.SpecularFit` whose
+    material is `plastic` (ks made grey, its colour moved into the light, as `fit_specular`)."""
+    from .reflectance import FitError, SpecularFit
+
+    t0 = time.perf_counter()
+    f = data.fit
+    b = data.photo[f]
+    scale = float(np.sqrt(np.mean(b**2))) or 1.0
+    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    nfev = 0
+    cache: dict = {}
+
+    def parts(la):  # every evaluation with its derivative: trf asks for the Jacobian at most points
+        key = float(la)
+        if key not in cache:
+            if len(cache) > 3:
+                cache.clear()
+            cache[key] = data.evaluate(float(np.exp(la)), True)
+        return cache[key]
+
+    def residual(x):
+        nonlocal nfev
+        nfev += 1
+        B, S = parts(x[6])[:2]
+        r = x[:3][None, :] * B[f] + x[3:6][None, :] * S[f] - b
+        return (r / scale).T.ravel()
+
+    def jacobian(x):
+        B, S, dB, dS = parts(x[6])
+        B, S, dB, dS = B[f], S[f], dB[f], dS[f]
+        m = len(B)
+        J = np.zeros((3 * m, 7))
+        for c in range(3):
+            rows = slice(c * m, (c + 1) * m)
+            J[rows, c] = B[:, c]
+            J[rows, 3 + c] = S[:, c]
+            J[rows, 6] = x[c] * dB[:, c] + x[3 + c] * dS[:, c]
+        return J / scale
+
+    def lm(x0):
+        x0 = np.array(x0, float)
+        x0[:6] = np.maximum(x0[:6], 1e-12)
+        x0[6] = np.clip(x0[6], lo + 1e-9, hi - 1e-9)
+        res = least_squares(residual, x0, jac=jacobian, method="trf", x_scale="jac",
+                            bounds=([0.0] * 6 + [lo], [np.inf] * 6 + [hi]),
+                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
+        return res.x, float(2 * res.cost) * scale**2
+
+    a0 = float(np.clip(start.roughness if start.roughness > 0 else 0.1, *ALPHA_RANGE))
+    b0 = base_scale(a0, data.ior, data.distribution)
+    x0 = np.array([*(np.asarray(start.kd) * b0), *start.ks, np.log(a0)], float)
+    path, message = "lm", "converged from the start"
+    if guard:
+        # alpha is the one nonlinear parameter: a scan over it (kd', ks >= 0 exact at each alpha) finds
+        # the global optimum's basin; LM starts from the scan's best when that fits better than the
+        # start, and from the scan's best again if LM from the start ends worse than it
+        scan = [(_linear_fit(data, a), a) for a in SCAN_ALPHA]
+        (coef, sq_best), a_best = min(scan, key=lambda t: t[0][1])
+        xs = np.array([*coef, np.log(a_best)])
+        sq_start = float(np.sum(residual(x0) ** 2)) * scale**2
+        if not np.any(coef[3:6] > 0) and sq_best <= sq_start:
+            x, sq, path = xs, sq_best, "scan"
+            message = "no specular term fits at any alpha of the scan (ks = 0): the data support no highlight"
+        else:
+            from_scan = sq_best < sq_start
+            x, sq = lm(xs if from_scan else x0)
+            if from_scan:
+                path, message = "scan+lm", f"started at the scan's best alpha = {a_best:g} (it fits better than " \
+                                           f"alpha = {a0:g})"
+            elif sq > sq_best:
+                x2_, sq2 = lm(xs)
+                if sq2 < sq:
+                    x, sq, path = x2_, sq2, "scan+lm"
+                    message = (f"LM from the start (alpha = {a0:g}) stopped in a worse local optimum; restarted at "
+                               f"the scan's best alpha = {a_best:g}")
+    else:
+        x, sq = lm(x0)
+    if not np.all(np.isfinite(x)):
+        raise FitError("the plastic fit did not converge to finite parameters")
+    alpha = float(np.exp(x[6]))
+    at_bound = x[6] <= lo + 1e-6 or x[6] >= hi - 1e-6
+    if at_bound:
+        message += f"; alpha is at the end of its range {ALPHA_RANGE}"
+    J = jacobian(x)
+    r = residual(x)
+    dof = max(len(r) - 7, 1)
+    cov = (r @ r / dof) * np.linalg.pinv(J.T @ J)
+    # kd = kd' / b(alpha): propagate with d log b / d log alpha (two more coatings)
+    bs = base_scale(alpha, data.ior, data.distribution)
+    h = 0.02
+    dlogb = (np.log(base_scale(alpha * np.exp(h), data.ior, data.distribution))
+             - np.log(base_scale(alpha * np.exp(-h), data.ior, data.distribution))) / (2 * h)
+    T = np.eye(7)
+    T[:3, :3] /= bs
+    T[:3, 6] = -np.maximum(x[:3], 0) / bs * dlogb
+    cov = T @ cov @ T.T
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    kd = np.maximum(x[:3], 0.0) / bs
+    ks_rgb = np.maximum(x[3:6], 0.0)
+    sigma = {"kd": sd[:3].tolist(), "ks_rgb": sd[3:6].tolist(), "ks": float(np.sqrt(max(cov[3:6, 3:6].sum(), 0.0)) / 3),
+             "alpha": float(alpha * sd[6]), "log_alpha": float(sd[6])}
+    ks = float(ks_rgb.mean())
+    light_scale = np.ones(3)
+    if ks > 0 and np.all(ks_rgb > 3 * sd[3:6]):
+        light_scale = ks_rgb / ks
+    material = Material(kd=tuple(float(v) for v in kd / light_scale), ks=(ks, ks, ks), model=PLASTIC,
+                        roughness=alpha, distribution=data.distribution, ior=data.ior)
+    B, S = parts(x[6])[:2]
+    pred = x[:3][None, :] * B + ks_rgb[None, :] * S
+
+    def rel(sel):
+        if not sel.any():
+            return None
+        return float(np.sqrt(((pred[sel] - data.photo[sel]) ** 2).sum() / max((data.photo[sel] ** 2).sum(), 1e-300)))
+
+    return SpecularFit(material, light_scale, ks_rgb, sigma, rel(data.fit), rel(~data.fit),
+                       {"kd": list(start.kd), "ks": list(start.ks), "alpha": a0, "distribution": data.distribution,
+                        "ior": data.ior}, path, message, nfev, time.perf_counter() - t0, len(data.photo),
+                       data.lit_texels)
