@@ -347,3 +347,67 @@ def test_blender_material_description_says_what_to_type():
     assert Material.from_json(desc["wavelight_material"]) == PLASTIC_GGX
     compile(ex.blender_material_script(), "setup_material.py", "exec")
     json.dumps(desc)
+
+
+def _fake_bpy(active):
+    """The few parts of Blender's bpy that setup_material.py touches (Blender 4/5 Principled BSDF
+    input names), recording what it sets: the script's logic checked without Blender (the render
+    in Blender itself: tests/test_exports_material.py, with the Blender venv)."""
+    import types
+
+    class Socket:
+        def __init__(self, value):
+            self.default_value = value
+
+    class Node:
+        def __init__(self, kind):
+            self.bl_idname, self.location, self.distribution = kind, (0, 0), "MULTI_GGX"
+            if kind == "ShaderNodeBsdfPrincipled":
+                self.inputs = {"Base Color": Socket([0.8, 0.8, 0.8, 1.0]), "Metallic": Socket(0.0),
+                               "Roughness": Socket(0.5), "IOR": Socket(1.5), "Specular IOR Level": Socket(0.5),
+                               "Specular Tint": Socket([1.0, 1.0, 1.0, 1.0]), "Coat Weight": Socket(0.0)}
+                self.outputs = {"BSDF": "bsdf-out"}
+            else:
+                self.inputs, self.outputs = {"Surface": "surface-in"}, {}
+
+    class Tree:
+        def __init__(self):
+            self.nodes = types.SimpleNamespace(list=[], clear=lambda: self.nodes.list.clear(),
+                                               new=lambda kind: self.nodes.list.append(Node(kind)) or self.nodes.list[-1])
+            self.links = types.SimpleNamespace(made=[], new=lambda a, b: self.links.made.append((a, b)))
+
+    materials = {}
+
+    def new_material(name):
+        materials[name] = types.SimpleNamespace(name=name, node_tree=Tree(), use_nodes=True)
+        return materials[name]
+
+    bpy = types.ModuleType("bpy")
+    bpy.data = types.SimpleNamespace(materials=types.SimpleNamespace(get=materials.get, new=new_material), texts=[])
+    bpy.path = types.SimpleNamespace(abspath=lambda p: p)
+    bpy.context = types.SimpleNamespace(view_layer=types.SimpleNamespace(objects=types.SimpleNamespace(active=active)))
+    return bpy
+
+
+@pytest.mark.parametrize("material", [Material(kd=(0.6, 0.5, 0.4)), PLASTIC_GGX], ids=["lambert", "plastic"])
+def test_setup_material_script_sets_what_material_json_says(material, tmp_path, monkeypatch):
+    import runpy
+    import sys
+    import types
+
+    (tmp_path / "material.json").write_text(json.dumps(ex.blender_material_description(material)))
+    (tmp_path / "setup_material.py").write_text(ex.blender_material_script())
+    obj = types.SimpleNamespace(name="ball", data=types.SimpleNamespace(materials=[]))
+    monkeypatch.setitem(sys.modules, "bpy", _fake_bpy(obj))
+    runpy.run_path(str(tmp_path / "setup_material.py"), run_name="__main__")
+    assert len(obj.data.materials) == 1 and obj.data.materials[0].name == "wavelight"
+    tree = obj.data.materials[0].node_tree
+    bsdf = next(n for n in tree.nodes.list if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    want = ex.blender_material_description(material)
+    assert bsdf.distribution == want["distribution"] == "GGX"
+    for name, value in want["inputs"].items():
+        got = bsdf.inputs[name].default_value
+        assert (list(got[:3]) if isinstance(value, list) else got) == value, name
+        if isinstance(value, list):
+            assert got[3] == 1.0
+    assert tree.links.made == [("bsdf-out", "surface-in")]
