@@ -94,13 +94,16 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
             if mapping is not None:
                 summary["material"] = {
                     "source": cache.relative(material_path), "model": material.model,
-                    "mitsuba": {"file": "mitsuba/bsdf.xml", "bsdf": mapping["mitsuba"]["type"], "exact": mapping["exact"],
-                                "what": "the material as a Mitsuba 3 BSDF (mi.load_file, or paste into a <shape>)"},
-                    "blender": {"files": ["blender/material.json", "blender/setup_material.py"],
-                                "exact": mapping["blender_exact"],
-                                "what": "a Principled BSDF: its inputs and the settings in words (material.json); "
-                                        "setup_material.py makes it on the active object"},
                     "approximate": not mapping["exact"], "light_scale": scale, "notes": mapping["notes"]}
+                if "mitsuba" in formats:
+                    summary["material"]["mitsuba"] = {
+                        "file": "mitsuba/bsdf.xml", "bsdf": mapping["mitsuba"]["type"], "exact": mapping["exact"],
+                        "what": "the material as a Mitsuba 3 BSDF (mi.load_file, or paste into a <shape>)"}
+                if "blender" in formats:
+                    summary["material"]["blender"] = {
+                        "files": ["blender/material.json", "blender/setup_material.py"], "exact": mapping["blender_exact"],
+                        "what": "a Principled BSDF: its inputs and the settings in words (material.json); "
+                                "setup_material.py makes it on the active object"}
             else:
                 summary["material"] = {"source": None, "note": "no material: run wavelight solve (out/reflectance.json) "
                                                                "or pass --material to export one"}
@@ -113,7 +116,10 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                          "opengl/*.exr": "the light as OpenGL / three.js cube faces"},
                 "conventions": "README: Relight, insert, export, report (export) and pipelines/io/exports.py"}))
             summary["line"] = (f"export: {', '.join(formats)} -> {cache.relative(out)}/ "
-                               f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])})")
+                               f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])}"
+                               + (f"; material {material.model}: {'exact' if mapping['exact'] else 'approximate'} in "
+                                  f"Mitsuba" if mapping is not None and ({"mitsuba", "blender"} & set(formats)) else "")
+                               + ")")
             return Ran(outputs, summary)
 
         d = run_stage(cache, stage, console, force, work)
