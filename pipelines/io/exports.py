@@ -24,6 +24,9 @@ phi = 2 pi (c + 1/2) / W from +X towards +Y; world +Z up.
   +X: sc = -z, tc = -y; -X: sc = z, tc = -y; +Y: sc = x, tc = z; -Y: sc = x, tc = -z;
   +Z: sc = x, tc = -y; -Z: sc = -x, tc = -y (the GL specification's table).
   Face pixels of size R coincide with our cube map's texels, so the export is exact.
+- The fitted material (`material_mapping`, below): Mitsuba 3's diffuse / roughplastic / plastic BSDF
+  (`mitsuba_bsdf_xml`) and Blender's Principled BSDF (`blender_material_description`,
+  `blender_material_script`); exact for lambert and plastic in Mitsuba, approximate otherwise.
 """
 
 from __future__ import annotations
