@@ -18,7 +18,8 @@ factory settings; nothing here knows about wavelight:
            passes, each the mean over the pixel's samples)
   objects: [{"kind": "sphere", "center", "radius"} | {"kind": "plane", "size", "z"},
             each with "material": {"type": "diffuse", "color"} | {"type": "glossy", "color",
-            "roughness", "distribution"}, "visible_camera" (default true) and "camera_only"
+            "roughness", "distribution"} | {"type": "script", "script": PATH} (the export's
+            setup_material.py run as `blender --python` runs it, the object active), "visible_camera" (default true) and "camera_only"
             (default false: seen by camera rays alone, so that two spheres in one image neither
             shadow nor reflect each other)]
 
@@ -147,7 +148,13 @@ def build(spec: dict):
 
     for o in spec["objects"]:
         obj = _sphere(o) if o["kind"] == "sphere" else _plane(o)
-        obj.data.materials.append(_material(o["material"]))
+        if o["material"]["type"] == "script":  # the export's setup_material.py, run on the active object
+            bpy.context.view_layer.objects.active = obj
+            runpy.run_path(o["material"]["script"], run_name="__main__")
+            if not obj.data.materials or obj.data.materials[0] is None:
+                raise RuntimeError(f"{o['material']['script']} gave the object no material")
+        else:
+            obj.data.materials.append(_material(o["material"]))
         obj.visible_camera = bool(o.get("visible_camera", True))
         if o.get("camera_only", False):
             obj.visible_diffuse = obj.visible_glossy = obj.visible_transmission = False

@@ -170,7 +170,38 @@ def test_export_command_writes_every_format_and_they_read_back(solved, tmp_path)
     np.testing.assert_allclose(_energy(blender), info["energy_rgb"], rtol=1e-5)
     np.testing.assert_allclose(info["energy_rgb"], (tex * cube.solid_angles[:, None]).sum(axis=0), rtol=0.005)
     assert 'to_world"><matrix value="0 0 -1 0 -1 0 0 0 0 1 0 0 0 0 0 1"' in (out / "mitsuba" / "emitter.xml").read_text()
+    # the fitted material (out/reflectance.json) next to the light
+    from wavelight_cli.scene import material_from_options
+
+    fitted = material_from_options(scene / "out" / "reflectance.json", None, None, None, None)
+    for f in ("mitsuba/bsdf.xml", "blender/material.json", "blender/setup_material.py"):
+        assert f"out/export/{f}" in info["files"]
+    assert (out / "mitsuba" / "bsdf.xml").read_text() == ex.mitsuba_bsdf_xml(fitted)
+    assert json.loads((out / "blender" / "material.json").read_text()) == ex.blender_material_description(fitted)
+    assert info["material"]["source"] == "out/reflectance.json" and info["material"]["model"] == fitted.model
+    assert info["material"]["mitsuba"]["file"] == "mitsuba/bsdf.xml"
     assert "export: skipped" in ok(invoke(scene, "export"))
+
+
+def test_export_material_option_and_approximation_note(solved, tmp_path):
+    """--material exports a given material; a Blinn-Phong one says it is approximate; a material
+    with colours above 1 scales the exported light by the same factor."""
+    scene = shutil.copytree(solved, tmp_path / "s")
+    (scene / "bp.json").write_text(json.dumps({"model": "blinn-phong", "kd": [0.5, 0.4, 0.3], "ks": [0.2] * 3, "n": 40}))
+    ok(invoke(scene, "export", "--format", "mitsuba", "--material", scene / "bp.json"))
+    out = scene / "out" / "export"
+    info = json.loads((out / "export.json").read_text())
+    assert info["material"]["approximate"] and info["material"]["model"] == "blinn-phong"
+    assert any(n.startswith("approximate") for n in info["material"]["notes"])
+    assert "APPROXIMATION" in (out / "mitsuba" / "bsdf.xml").read_text()
+    assert not (out / "blender" / "material.json").exists()
+    (scene / "bright.json").write_text(json.dumps({"model": "lambert", "kd": [2.0, 1.0, 0.5]}))
+    ok(invoke(scene, "export", "--format", "mitsuba", "--format", "blender", "--material", scene / "bright.json"))
+    info = json.loads((out / "export.json").read_text())
+    assert info["material"]["light_scale"] == 2.0
+    assert 'name="scale" value="2"' in (out / "mitsuba" / "emitter.xml").read_text()
+    assert "STRENGTH = 2.0" in (out / "blender" / "setup_world.py").read_text()
+    assert json.loads((out / "blender" / "material.json").read_text())["inputs"]["Base Color"] == [1.0, 0.5, 0.25]
 
 
 BAD = [
@@ -178,6 +209,9 @@ BAD = [
     ("light-missing", None, ["export", "--light", "nope.exr"], "nope.exr"),
     ("face-size", None, ["export", "--face-size", "12"], "--face-size"),
     ("height", None, ["export", "--height", "2"], "--height"),
+    ("material-missing", None, ["export", "--material", "nope.json"], "nope.json"),
+    ("material-bad", lambda s: (s / "m.json").write_text('{"model": "velvet"}'), ["export", "--material", "m.json"],
+     "m.json"),
     ("corrupt-solution", lambda s: (s / "out" / "coefficients.h5").write_bytes(b"x" * 64), ["export"],
      "coefficients.h5"),
 ]
@@ -186,3 +220,194 @@ BAD = [
 @pytest.mark.parametrize("mutate, args, culprit", [pytest.param(*c[1:], id=c[0]) for c in BAD])
 def test_export_bad_input(solved, tmp_path, mutate, args, culprit):
     check_bad_input(solved, tmp_path, mutate, args, culprit)
+
+
+# -- the fitted material ----------------------------------------------------------------------------------
+
+from pipelines.model import microfacet as mf  # noqa: E402
+from pipelines.model.materials import Material  # noqa: E402
+
+PLASTIC_GGX = Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2, distribution="ggx",
+                       ior=1.49)
+
+
+def test_material_mapping_lambert_and_plastic_are_exact():
+    """lambert -> `diffuse` (reflectance kd); plastic -> `roughplastic` with our alpha, distribution,
+    int_ior = ior and ext_ior = 1 (ours is relative; Mitsuba's default outside is air), kd, ks,
+    nonlinear false, or `plastic` for alpha = 0; Blender: Metallic 0, Roughness = sqrt(alpha)."""
+    m = ex.material_mapping(Material(kd=(0.6, 0.5, 0.4)))
+    assert m["mitsuba"] == {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]} and m["exact"] and m["blender_exact"]
+    assert m["blender"]["Specular IOR Level"] == 0.0 and m["blender"]["Base Color"] == [0.6, 0.5, 0.4]
+    assert m["light_scale"] == 1.0
+    # blinn-phong with ks = 0 is Lambert too
+    assert ex.material_mapping(Material(kd=(0.6, 0.5, 0.4), model="blinn-phong", shininess=30))["mitsuba"]["type"] == "diffuse"
+    m = ex.material_mapping(PLASTIC_GGX)
+    assert m["mitsuba"] == {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2, "sample_visible": True,
+                            "int_ior": 1.49, "ext_ior": 1.0, "diffuse_reflectance": [0.5, 0.4, 0.3],
+                            "specular_reflectance": [1.0, 1.0, 1.0], "nonlinear": False}
+    assert m["exact"] and not m["blender_exact"]
+    b = m["blender"]
+    assert b["Metallic"] == 0.0 and b["Roughness"] == pytest.approx(np.sqrt(0.2)) and b["IOR"] == 1.49
+    assert b["Specular IOR Level"] == 0.5 and b["distribution"] == "GGX"
+    smooth = ex.material_mapping(Material(kd=(0.5, 0.4, 0.3), ks=(0.8, 0.8, 0.8), model="plastic", roughness=0.0))
+    assert smooth["mitsuba"]["type"] == "plastic" and "alpha" not in smooth["mitsuba"]
+    assert smooth["mitsuba"]["specular_reflectance"] == [0.8, 0.8, 0.8]
+    assert smooth["blender"]["Roughness"] == 0.0 and smooth["blender"]["Specular IOR Level"] == pytest.approx(0.4)
+    beck = ex.material_mapping(Material(kd=(0.5, 0.4, 0.3), ks=(1, 1, 1), model="plastic", roughness=0.3,
+                                        distribution="beckmann"))
+    assert beck["mitsuba"]["distribution"] == "beckmann" and any("no Beckmann" in n for n in beck["notes"])
+
+
+def _mitsuba_eval(xml_text, tmp_path, wi, wo):
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    (tmp_path / "bsdf.xml").write_text(xml_text)
+    bsdf = mi.load_file(str(tmp_path / "bsdf.xml"))
+    out = []
+    for a, b in zip(wi, wo):
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(*a)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        out.append(np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*b))))
+    return np.array(out)
+
+
+def _pairs(seed, n=200):
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(2, n, 3))
+    v[..., 2] = np.abs(v[..., 2]) + 0.05
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    return v[0], v[1]
+
+
+@pytest.mark.parametrize("material", [Material(kd=(0.6, 0.5, 0.4)), PLASTIC_GGX,
+                                      Material(kd=(0.2, 0.5, 0.7), ks=(0.9, 0.7, 1.0), model="plastic", roughness=0.05,
+                                               distribution="beckmann", ior=1.6),
+                                      Material(kd=(0.5, 0.4, 0.3), ks=(1, 1, 1), model="plastic", roughness=0.0)],
+                         ids=["lambert", "ggx", "beckmann", "smooth"])
+def test_exported_bsdf_xml_evaluates_as_our_model(material, tmp_path):
+    """bsdf.xml loaded by Mitsuba (mi.load_file) and evaluated at random direction pairs: f cos of
+    our model per channel (the smooth coating: its non-delta part, the diffuse base), to 1e-4."""
+    wi, wo = _pairs(1)
+    got = _mitsuba_eval(ex.mitsuba_bsdf_xml(material), tmp_path, wi, wo)
+    for c in range(3):
+        if material.model == "lambert":
+            want = material.kd[c] * wo[:, 2] / np.pi
+        else:
+            d, s = mf.eval_cos(material.kd[c], material.ks[c], material.roughness, material.ior,
+                               material.distribution, wi[:, 2], wo[:, 2], np.sum(wi * wo, axis=1))
+            want = d + s
+        np.testing.assert_allclose(got[:, c], want, rtol=1e-4)
+
+
+@pytest.mark.parametrize("model, n, alpha", [("blinn-phong", 50.0, np.sqrt(2 / 52)), ("phong", 20.0, np.sqrt(2 / 82)),
+                                             ("phong-classic", 20.0, np.sqrt(2 / 82))])
+def test_phong_family_maps_to_the_closest_roughplastic(model, n, alpha, tmp_path):
+    """No tool has a Phong lobe: Beckmann alpha = sqrt(2 / (n' + 2)) (n' = n for Blinn-Phong, 4n for
+    Phong's R.d lobe), the lobe's peak at normal incidence kept (Mitsuba's eval there = ours), the
+    diffuse albedo head on kd; export.json / the XML say it is approximate."""
+    m = Material(kd=(0.5, 0.4, 0.3), ks=(0.1, 0.15, 0.2), shininess=n, model=model)
+    mapping = ex.material_mapping(m)
+    assert not mapping["exact"] and any(n_.startswith("approximate") for n_ in mapping["notes"])
+    assert mapping["mitsuba"]["distribution"] == "beckmann"
+    assert mapping["mitsuba"]["alpha"] == pytest.approx(alpha)
+    xml = ex.mitsuba_bsdf_xml(m)
+    assert "APPROXIMATION" in xml
+    # the specular peak: kd = 0, view and light along the normal
+    spec_only = Material(kd=(0.0, 0.0, 0.0), ks=m.ks, shininess=n, model=model)
+    z = np.array([[0.0, 0.0, 1.0]])
+    got = _mitsuba_eval(ex.mitsuba_bsdf_xml(spec_only), tmp_path, z, z)[0]
+    peak = {"blinn-phong": (n + 8) / (8 * np.pi), "phong": (n + 2) / (2 * np.pi), "phong-classic": 1.0}[model]
+    np.testing.assert_allclose(got, np.asarray(m.ks) * peak, rtol=2e-3)
+    # the diffuse albedo head on: kd (Mitsuba's diffuse part, integrated over the hemisphere)
+    diffuse_only = Material(kd=m.kd, ks=(1e-9,) * 3, shininess=n, model=model)
+    p = ex.material_mapping(diffuse_only)["mitsuba"]
+    albedo = (np.asarray(p["diffuse_reflectance"])
+              * ex.diffuse_albedo_factor(p["alpha"], p["int_ior"], "beckmann"))
+    np.testing.assert_allclose(albedo, m.kd, rtol=1e-9)
+
+
+def test_colours_above_one_move_into_the_light():
+    """Mitsuba refuses RGB reflectances > 1: the material's colours are divided by the largest, s,
+    and the light multiplied by s (emitter.xml's scale, the World's Strength): the same render."""
+    m = ex.material_mapping(Material(kd=(1.6, 0.8, 0.4)))
+    assert m["light_scale"] == pytest.approx(1.6)
+    np.testing.assert_allclose(m["mitsuba"]["reflectance"], [1.0, 0.5, 0.25])
+    np.testing.assert_allclose(m["blender"]["Base Color"], [1.0, 0.5, 0.25])
+    assert 'name="scale" value="1.6"' in ex.mitsuba_xml("light.exr", m["light_scale"])
+    assert "STRENGTH = 1.6" in ex.blender_world_script("light_equirect.exr", 1.6)
+
+
+def test_blender_material_description_says_what_to_type():
+    desc = ex.blender_material_description(PLASTIC_GGX)
+    assert desc["node"] == "ShaderNodeBsdfPrincipled" and desc["distribution"] == "GGX"
+    assert desc["inputs"]["Roughness"] == pytest.approx(np.sqrt(0.2)) and desc["inputs"]["Metallic"] == 0.0
+    text = "\n".join(desc["settings"])
+    assert "Roughness: 0.4472" in text and "Metallic: 0" in text and "IOR: 1.49" in text
+    assert Material.from_json(desc["wavelight_material"]) == PLASTIC_GGX
+    compile(ex.blender_material_script(), "setup_material.py", "exec")
+    json.dumps(desc)
+
+
+def _fake_bpy(active):
+    """The few parts of Blender's bpy that setup_material.py touches (Blender 4/5 Principled BSDF
+    input names), recording what it sets: the script's logic checked without Blender (the render
+    in Blender itself: tests/test_exports_material.py, with the Blender venv)."""
+    import types
+
+    class Socket:
+        def __init__(self, value):
+            self.default_value = value
+
+    class Node:
+        def __init__(self, kind):
+            self.bl_idname, self.location, self.distribution = kind, (0, 0), "MULTI_GGX"
+            if kind == "ShaderNodeBsdfPrincipled":
+                self.inputs = {"Base Color": Socket([0.8, 0.8, 0.8, 1.0]), "Metallic": Socket(0.0),
+                               "Roughness": Socket(0.5), "IOR": Socket(1.5), "Specular IOR Level": Socket(0.5),
+                               "Specular Tint": Socket([1.0, 1.0, 1.0, 1.0]), "Coat Weight": Socket(0.0)}
+                self.outputs = {"BSDF": "bsdf-out"}
+            else:
+                self.inputs, self.outputs = {"Surface": "surface-in"}, {}
+
+    class Tree:
+        def __init__(self):
+            self.nodes = types.SimpleNamespace(list=[], clear=lambda: self.nodes.list.clear(),
+                                               new=lambda kind: self.nodes.list.append(Node(kind)) or self.nodes.list[-1])
+            self.links = types.SimpleNamespace(made=[], new=lambda a, b: self.links.made.append((a, b)))
+
+    materials = {}
+
+    def new_material(name):
+        materials[name] = types.SimpleNamespace(name=name, node_tree=Tree(), use_nodes=True)
+        return materials[name]
+
+    bpy = types.ModuleType("bpy")
+    bpy.data = types.SimpleNamespace(materials=types.SimpleNamespace(get=materials.get, new=new_material), texts=[])
+    bpy.path = types.SimpleNamespace(abspath=lambda p: p)
+    bpy.context = types.SimpleNamespace(view_layer=types.SimpleNamespace(objects=types.SimpleNamespace(active=active)))
+    return bpy
+
+
+@pytest.mark.parametrize("material", [Material(kd=(0.6, 0.5, 0.4)), PLASTIC_GGX], ids=["lambert", "plastic"])
+def test_setup_material_script_sets_what_material_json_says(material, tmp_path, monkeypatch):
+    import runpy
+    import sys
+    import types
+
+    (tmp_path / "material.json").write_text(json.dumps(ex.blender_material_description(material)))
+    (tmp_path / "setup_material.py").write_text(ex.blender_material_script())
+    obj = types.SimpleNamespace(name="ball", data=types.SimpleNamespace(materials=[]))
+    monkeypatch.setitem(sys.modules, "bpy", _fake_bpy(obj))
+    runpy.run_path(str(tmp_path / "setup_material.py"), run_name="__main__")
+    assert len(obj.data.materials) == 1 and obj.data.materials[0].name == "wavelight"
+    tree = obj.data.materials[0].node_tree
+    bsdf = next(n for n in tree.nodes.list if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    want = ex.blender_material_description(material)
+    assert bsdf.distribution == want["distribution"] == "GGX"
+    for name, value in want["inputs"].items():
+        got = bsdf.inputs[name].default_value
+        assert (list(got[:3]) if isinstance(value, list) else got) == value, name
+        if isinstance(value, list):
+            assert got[3] == 1.0
+    assert tree.links.made == [("bsdf-out", "surface-in")]

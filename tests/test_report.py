@@ -131,12 +131,14 @@ def test_the_light_section_states_its_scale(reported):
 def test_exports_say_what_each_file_is_for(reported):
     md = (reported / "out" / "report.md").read_text()
     section = md.split("## Exports")[1]
-    for tool, files in (("Mitsuba 3", ("`mitsuba/light.exr`", "`mitsuba/emitter.xml`")),
-                        ("Blender", ("`blender/light_equirect.exr`",)),
+    for tool, files in (("Mitsuba 3", ("`mitsuba/light.exr`", "`mitsuba/emitter.xml`", "`mitsuba/bsdf.xml`")),
+                        ("Blender", ("`blender/light_equirect.exr`", "`blender/material.json`",
+                                     "`blender/setup_material.py`")),
                         ("OpenGL / three.js", tuple(f"`opengl/{f}.exr`" for f in ("px", "nx", "py", "ny", "pz", "nz")))):
         row = next(ln for ln in section.splitlines() if ln.startswith(f"| {tool} |"))
         assert all(f in row for f in files), row
         assert len(row.split(" | ")[-1]) > 40  # a how-to
+    assert "The material (" in section and "is exported too" in section
 
 
 def test_the_html_page_is_self_contained(reported):

@@ -332,7 +332,11 @@ def mitsuba_camera(camera: dict, width: int, height: int, spp: int, seed: int) -
                      "pixel_format": "rgb"}}
 
 
-def mitsuba_bsdf(material: dict) -> dict:
+def mitsuba_bsdf(material: dict):
+    if material["type"] == "file":  # a BSDF file as a user loads it (the export's bsdf.xml)
+        import mitsuba as mi
+
+        return mi.load_file(str(material["path"]))
     if material["type"] == "diffuse":
         return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(material.get("color", (1, 1, 1)))}}
     if material["type"] == "roughconductor":  # material "none": eta 0, k 1, so F = 1 (a white GGX lobe)

@@ -651,16 +651,19 @@ def insert_cmd(obj, **kw):
                    "64]; a --light file keeps its own rows.")
 @click.option("--face-size", type=int, default=None,
               help="Cube face size of the OpenGL faces [default: the solve's R; 64 with --light].")
+@click.option("--material", "material_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help=f"{MATERIAL_JSON} to export [default: the reflectance solve fitted (out/reflectance.json), if "
+                   "any]: Mitsuba bsdf.xml, Blender material.json + setup_material.py.")
 @force_option
 @click.pass_obj
-def export_cmd(obj, formats, light, height, face_size, force):
-    """The light in other tools' conventions -> out/export/{mitsuba,blender,opengl}/ (README:
-    Relight, insert, export, report)."""
+def export_cmd(obj, formats, light, height, face_size, material_file, force):
+    """The light (and the fitted material) in other tools' conventions -> out/export/{mitsuba,blender,opengl}/
+    (README: Relight, insert, export, report)."""
     from .stages.export import FORMATS, export_stage
 
     scene = scene_folder(obj["scene"])
     chosen = FORMATS if "all" in formats else tuple(f for f in FORMATS if f in formats)
-    export_stage(scene, chosen, light, height, face_size, obj["console"], force, obj["lock_wait"])
+    export_stage(scene, chosen, light, height, face_size, obj["console"], force, obj["lock_wait"], material_file)
 
 
 @_command("report")

@@ -24,6 +24,9 @@ phi = 2 pi (c + 1/2) / W from +X towards +Y; world +Z up.
   +X: sc = -z, tc = -y; -X: sc = z, tc = -y; +Y: sc = x, tc = z; -Y: sc = x, tc = -z;
   +Z: sc = x, tc = -y; -Z: sc = -x, tc = -y (the GL specification's table).
   Face pixels of size R coincide with our cube map's texels, so the export is exact.
+- The fitted material (`material_mapping`, below): Mitsuba 3's diffuse / roughplastic / plastic BSDF
+  (`mitsuba_bsdf_xml`) and Blender's Principled BSDF (`blender_material_description`,
+  `blender_material_script`); exact for lambert and plastic in Mitsuba, approximate otherwise.
 """
 
 from __future__ import annotations
@@ -133,7 +136,7 @@ BLENDER_WORLD_SCRIPT = '''"""wavelight: light this Blender scene with the export
 
 Makes the scene's World "wavelight": Texture Coordinate (Generated) -> Mapping -> Environment
 Texture of {image!r} (the file next to this script, equirectangular, linear) -> Background
-(strength 1) -> World Output. The image is wavelight's light in Blender's convention (world +Z
+(strength STRENGTH below) -> World Output. The image is wavelight's light in Blender's convention (world +Z
 up, linear radiance: a white diffuse patch facing up under a uniform sky of 1 renders 1); the
 Mapping node's Z rotation turns the light about +Z (0 = as recovered). Rerunning replaces the
 world's nodes.
@@ -145,6 +148,7 @@ import bpy
 
 IMAGE = {image!r}
 WORLD = "wavelight"
+STRENGTH = {strength!r}  # 1, or the factor the exported material's colours were divided by (material.json)
 
 
 def script_folder():
@@ -187,7 +191,7 @@ def setup_world(scene=None, image_path=None):
     env.projection = "EQUIRECTANGULAR"
     env.interpolation = "Linear"
     background = nodes.new("ShaderNodeBackground")
-    background.inputs["Strength"].default_value = 1.0
+    background.inputs["Strength"].default_value = STRENGTH
     output = nodes.new("ShaderNodeOutputWorld")
     links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
     links.new(mapping.outputs["Vector"], env.inputs["Vector"])
@@ -206,12 +210,13 @@ if __name__ == "__main__":
 '''
 
 
-def blender_world_script(image_name: str) -> str:
+def blender_world_script(image_name: str, strength: float = 1.0) -> str:
     """setup_world.py for Blender: sets the scene's World to the exported equirectangular image
-    `image_name`, looked up next to the script (see the script's docstring for how to run it)."""
+    `image_name`, looked up next to the script (see the script's docstring for how to run it), with
+    the Background's Strength `strength` (1, or the exported material's light_scale)."""
     if any(c in image_name for c in "/\\\n\r") or not image_name:
         raise ValueError(f"image_name must be a bare file name, got {image_name!r}")
-    return BLENDER_WORLD_SCRIPT.format(image=image_name)
+    return BLENDER_WORLD_SCRIPT.format(image=image_name, strength=float(strength))
 
 
 # -- OpenGL / three.js cube faces ----------------------------------------------------------------------------
@@ -274,3 +279,275 @@ def gl_lookup(faces: dict[str, np.ndarray], directions: np.ndarray) -> np.ndarra
         t = (tc[sel] / ma[sel] + 1) / 2
         out[sel] = _read(faces[face], np.floor(t * size).astype(int), np.floor(s * size).astype(int))
     return out
+
+
+# -- the fitted material ----------------------------------------------------------------------------------
+# What each of our reflectance models is in Mitsuba 3 and in Blender's Principled BSDF (README: Exports).
+#
+# - lambert: Mitsuba `diffuse` (reflectance kd), exact; Blender Principled with Specular IOR Level 0
+#   (no specular reflection at all: the base is Lambert, kd / pi), exact.
+# - plastic: Mitsuba `roughplastic` (alpha > 0) / `plastic` (alpha = 0) with diffuse_reflectance kd,
+#   specular_reflectance ks, int_ior = ior, ext_ior = 1 (our ior is relative to the outside; Mitsuba's
+#   default ext_ior is air's 1.000277), the same distribution and alpha, nonlinear false,
+#   sample_visible true: exactly our model (pipelines/model/microfacet.py, checked in
+#   tests/test_plastic_mitsuba.py). Blender: Principled BSDF, GGX, Roughness = sqrt(alpha)
+#   (Cycles' alpha = roughness^2), IOR = ior, Specular IOR Level 0.5 x mean(ks) (0.5: the IOR's own
+#   Fresnel) with Specular Tint ks / mean(ks), Base Color = our diffuse base's albedo at normal view
+#   over (1 - F0) (Principled's base is weighted by 1 - the coating's albedo, not by our
+#   t(N.v) t(N.d) / (eta^2 (1 - Fdr))): approximate; Beckmann is GGX there (Principled has no Beckmann).
+# - blinn-phong, phong, phong-classic: no equivalent in either tool. The closest roughplastic: Beckmann
+#   of alpha = sqrt(2 / (n' + 2)) (Walter et al. 2007's Phong-Beckmann correspondence; n' = n for
+#   Blinn-Phong's N.H lobe, 4n for Phong's R.d lobe, whose exponent is ~4x a half-vector lobe's), the
+#   lobe's peak at normal incidence kept: F0 x specular_reflectance = ks P 4 alpha^2 (from
+#   F0 s D(0) / 4 = ks P / pi, D(0) = 1 / (pi alpha^2); P = (n + 8) / 8 Blinn-Phong, (n + 2) / 2 Phong,
+#   pi phong-classic), with the IOR whose F0 is the largest channel's (1.05..3) and
+#   specular_reflectance the rest; diffuse_reflectance such that the albedo head on is kd.
+#   Off the peak and at grazing angles the Fresnel and 1 / (N.v N.d) of the microfacet lobe differ
+#   from a Phong lobe: approximate (export.json and the XML's comment say so).
+# - Colours above 1 (Mitsuba refuses RGB reflectances > 1): every colour is divided by their largest
+#   value s and the exported light multiplied by s (`light_scale`): the product, the render, is the same.
+
+def _f0(ior: float) -> float:
+    return float(((ior - 1.0) / (ior + 1.0)) ** 2)
+
+
+def diffuse_albedo_factor(alpha: float, ior: float, distribution: str) -> float:
+    """The directional albedo at normal view of our plastic's diffuse base per unit kd:
+    t(1) / (eta^2 (1 - Fdr)) 2 int_0^1 t(mu) mu dmu (the light reflected by the base of a kd = 1
+    plastic seen head on under a uniform sky of 1)."""
+    from ..model.microfacet import coating
+
+    c = coating(float(alpha), float(ior), distribution)
+    mu = (np.arange(4096) + 0.5) / 4096
+    return float(c.transmittance(np.array(1.0)) * c.base_scale * 2.0 * np.mean(c.transmittance(mu) * mu))
+
+
+def _phong_lobe(material) -> tuple[float, float, str]:
+    """(n' the half-vector exponent, the peak factor: the lobe's BRDF at normal incidence per ks x pi, name)."""
+    n = float(material.shininess)
+    if material.model == "blinn-phong":
+        return n, (n + 8) / 8.0, f"Blinn-Phong n = {n:g}"
+    if material.model == "phong":
+        return 4.0 * n, (n + 2) / 2.0, f"Phong n = {n:g} (a half-vector exponent of ~4n = {4 * n:g})"
+    return 4.0 * n, np.pi, f"the paper's unnormalised Phong n = {n:g} (a half-vector exponent of ~4n = {4 * n:g})"
+
+
+def material_mapping(material) -> dict:
+    """Our material as the parameters of Mitsuba 3's BSDF and Blender's Principled BSDF.
+
+    Returns {"model", "exact": whether Mitsuba's BSDF is our model exactly, "mitsuba": {"type", ...
+    parameters}, "blender": {Principled BSDF input name: value, "distribution"}, "notes": [...]}."""
+    kd, ks = np.asarray(material.kd, np.float64), np.asarray(material.ks, np.float64)
+    notes: list[str] = []
+    if material.model == "lambert" or not material.specular:
+        mitsuba = {"type": "diffuse", "reflectance": kd.tolist()}
+        blender = {"Base Color": kd.tolist(), "Metallic": 0.0, "Roughness": 0.5, "IOR": 1.5,
+                   "Specular IOR Level": 0.0, "Specular Tint": [1.0, 1.0, 1.0], "Coat Weight": 0.0,
+                   "distribution": "GGX"}
+        exact, blender_exact = True, True
+        if material.model != "lambert":
+            notes.append(f"{material.model} with ks = 0 is Lambert")
+    elif material.model == "plastic":
+        alpha, ior, dist = material.roughness, material.ior, material.distribution
+        mitsuba = {"type": "plastic" if alpha <= 0 else "roughplastic"}
+        if alpha > 0:
+            mitsuba.update(distribution=dist, alpha=alpha, sample_visible=True)
+        mitsuba.update(int_ior=ior, ext_ior=1.0, diffuse_reflectance=kd.tolist(), specular_reflectance=ks.tolist(),
+                       nonlinear=False)
+        exact, blender_exact = True, False
+        weight = ks
+        base = kd * diffuse_albedo_factor(alpha, ior, dist) / (1.0 - _f0(ior))
+        blender = _principled(base, alpha, ior, weight)
+        if dist == "beckmann":
+            notes.append("Blender's Principled BSDF has no Beckmann: GGX of the same alpha")
+        notes.append("Blender: Principled's diffuse base is weighted by 1 - the coating's albedo, not by wavelight's "
+                     "(and Mitsuba's) t(N.v) t(N.d) / (eta^2 (1 - Fdr)); Base Color gives the same albedo head on")
+    else:
+        n_half, peak, what = _phong_lobe(material)
+        alpha = float(np.sqrt(2.0 / (n_half + 2.0)))
+        # the specular F0 x weight that gives the lobe's peak: s F0 D(0) / 4 = ks peak / pi, D(0) = 1 / (pi alpha^2)
+        target = ks * peak * 4.0 * alpha**2
+        ior = _ior_of_f0(float(np.max(target)))
+        f0 = _f0(ior)
+        weight = target / f0
+        diffuse = kd / diffuse_albedo_factor(alpha, ior, "beckmann")
+        mitsuba = {"type": "roughplastic", "distribution": "beckmann", "alpha": alpha, "sample_visible": True,
+                   "int_ior": ior, "ext_ior": 1.0, "diffuse_reflectance": diffuse.tolist(),
+                   "specular_reflectance": weight.tolist(), "nonlinear": False}
+        exact, blender_exact = False, False
+        blender = _principled(kd / (1.0 - f0), alpha, ior, weight)
+        notes.append(f"approximate: {what} has no equivalent in Mitsuba or Blender; the closest roughplastic is "
+                     f"Beckmann alpha = sqrt(2 / (n' + 2)) = {alpha:.4g} (Walter et al. 2007), the IOR {ior:.4g} whose "
+                     f"F0 = {f0:.4g} with specular_reflectance gives the lobe's peak at normal incidence, and the "
+                     f"diffuse_reflectance that gives kd as the albedo head on; off the peak and at grazing angles "
+                     f"they differ (Fresnel, the microfacet 1 / (N.v N.d))")
+        notes.append("Blender's Principled BSDF has no Beckmann: GGX of the same alpha")
+    # Mitsuba's RGB reflectances must be <= 1 (Blender's Base Color too): a larger colour (the light holds
+    # the albedo's scale, README: Conventions) goes into the light, which the export then multiplies by s
+    colours = [np.max(v) for k, v in mitsuba.items() if isinstance(v, list)] + [np.max(blender["Base Color"])]
+    scale = float(max(1.0, *colours))
+    if scale > 1.0:
+        for k, v in mitsuba.items():
+            if isinstance(v, list):
+                mitsuba[k] = (np.asarray(v) / scale).tolist()
+        blender["Base Color"] = (np.asarray(blender["Base Color"]) / scale).tolist()
+        blender["Specular IOR Level"] /= scale
+        notes.append(f"colours above 1 (the light holds the albedo's scale, README: Conventions): the material's "
+                     f"colours are divided by {scale:.6g} and the exported light multiplied by it (emitter.xml's "
+                     f"scale, setup_world.py's Background Strength): the render is the same")
+    return {"model": material.model, "exact": exact, "blender_exact": blender_exact, "light_scale": scale,
+            "mitsuba": mitsuba, "blender": blender, "notes": notes}
+
+
+def _ior_of_f0(f0: float) -> float:
+    """The dielectric IOR of normal-incidence reflectance f0, within our IOR range."""
+    from ..model.microfacet import IOR_RANGE
+
+    r = np.sqrt(max(f0, 0.0))
+    ior = (1 + r) / (1 - r) if r < 1 else np.inf
+    return float(np.clip(ior, *IOR_RANGE))
+
+
+def _principled(base, alpha: float, ior: float, weight) -> dict:
+    """Principled BSDF inputs of a dielectric of roughness alpha whose specular Fresnel is `weight`
+    (RGB) x the IOR's."""
+    w = np.asarray(weight, np.float64)
+    level = float(np.mean(w))
+    tint = (w / level).tolist() if level > 0 else [1.0, 1.0, 1.0]
+    return {"Base Color": np.asarray(base, np.float64).tolist(), "Metallic": 0.0,
+            "Roughness": float(np.sqrt(alpha)), "IOR": float(ior), "Specular IOR Level": 0.5 * level,
+            "Specular Tint": tint, "Coat Weight": 0.0, "distribution": "GGX"}
+
+
+def _xml_value(name: str, value) -> str:
+    if isinstance(value, bool):
+        return f'<boolean name="{name}" value="{str(value).lower()}"/>'
+    if isinstance(value, str):
+        return f'<string name="{name}" value="{value}"/>'
+    if isinstance(value, (list, tuple)):
+        return f'<rgb name="{name}" value="{", ".join(f"{float(x):.9g}" for x in value)}"/>'
+    return f'<float name="{name}" value="{float(value):.9g}"/>'
+
+
+def mitsuba_bsdf_xml(material, bsdf_id: str = "wavelight") -> str:
+    """The material as a Mitsuba 3 BSDF element, a file `mi.load_file` loads by itself (its root
+    has version="3.0.0"; pasted into a shape, drop it, as for emitter.xml)."""
+    m = material_mapping(material)
+    p = dict(m["mitsuba"])
+    kind = p.pop("type")
+    what = ("exactly wavelight's model" if m["exact"] else
+            "an APPROXIMATION (no Mitsuba BSDF is this model)")
+    lines = [f'<bsdf type="{kind}" id="{bsdf_id}" version="3.0.0">',
+             f'    <!-- wavelight material: {material.model}; this BSDF is {what}.',
+             f'         Load this file (mi.load_file), or paste it into a <shape> (then drop version="3.0.0").']
+    lines += [f'         {note}'.replace("--", "-") for note in m["notes"] if not note.startswith("Blender")]
+    lines[-1] += " -->"
+    lines += [f"    {_xml_value(k, v)}" for k, v in p.items()]
+    lines.append("</bsdf>")
+    return "\n".join(lines) + "\n"
+
+
+def blender_material_description(material) -> dict:
+    """material.json: the Principled BSDF's inputs, and the settings a user types in, in words."""
+    m = material_mapping(material)
+    b = m["blender"]
+
+    def rgb(v):
+        return " ".join(f"{x:.4g}" for x in v)
+
+    steps = ["Shader Editor: select the object, add a material (New): a Principled BSDF",
+             f"Principled BSDF: distribution {b['distribution']}",
+             f"Base Color: RGB {rgb(b['Base Color'])} (linear: the Color picker's RGB tab, values as typed)",
+             "Metallic: 0",
+             f"Roughness: {b['Roughness']:.4g}",
+             f"IOR: {b['IOR']:.4g}",
+             f"Specular > IOR Level: {b['Specular IOR Level']:.4g}",
+             f"Specular > Tint: RGB {rgb(b['Specular Tint'])}",
+             "Coat > Weight: 0; everything else at its default (Subsurface, Transmission, Sheen, Emission 0)"]
+    return {"format": "wavelight-blender-material-1", "name": "wavelight", "node": "ShaderNodeBsdfPrincipled",
+            "model": material.model, "exact": m["blender_exact"], "inputs": {k: v for k, v in b.items() if k != "distribution"},
+            "distribution": b["distribution"], "settings": steps, "notes": m["notes"],
+            "wavelight_material": material.to_json(),
+            "script": "setup_material.py (next to this file) makes this material on the active object"}
+
+
+BLENDER_MATERIAL_SCRIPT = '''"""wavelight: the fitted material as a Blender material, on the active object.
+
+    blender my.blend --python setup_material.py      (then save), or Run Script in the Text Editor
+
+Reads material.json (next to this script): a Principled BSDF with the inputs listed there, in a
+material named "wavelight" (rerunning replaces its nodes), given to the active object (its first
+material slot). material.json's "settings" say the same in words, for typing them in by hand.
+"""
+
+import json
+import os
+
+import bpy
+
+JSON = "material.json"
+
+
+def script_folder():
+    name = globals().get("__file__") or ""
+    for candidate in (name, bpy.path.abspath(name)):
+        if candidate and os.path.isfile(candidate):
+            return os.path.dirname(os.path.abspath(candidate))
+    for text in bpy.data.texts:
+        path = bpy.path.abspath(text.filepath) if text.filepath else ""
+        if path and os.path.isfile(path) and (text.name == os.path.basename(name) or path == name):
+            return os.path.dirname(os.path.abspath(path))
+    raise RuntimeError("wavelight: cannot tell where setup_material.py is; run it from its file")
+
+
+def make_material(json_path=None):
+    """The material "wavelight" from material.json (a Principled BSDF -> Material Output)."""
+    json_path = json_path or os.path.join(script_folder(), JSON)
+    with open(json_path) as f:
+        desc = json.load(f)
+    mat = bpy.data.materials.get(desc["name"]) or bpy.data.materials.new(desc["name"])
+    if mat.node_tree is None:  # Blender < 5 needs use_nodes for a tree
+        mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    nodes.clear()
+    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+    out = nodes.new("ShaderNodeOutputMaterial")
+    bsdf.location, out.location = (-300, 0), (100, 0)
+    bsdf.distribution = desc["distribution"]
+    inputs = dict(desc["inputs"])
+    if "Specular IOR Level" not in bsdf.inputs:  # Blender < 4: "Specular" 0.5 = F0 0.04, "Clearcoat"
+        level = inputs.pop("Specular IOR Level")
+        ior = inputs["IOR"]
+        inputs["Specular"] = 2.0 * level * ((ior - 1) / (ior + 1)) ** 2 / 0.08
+        inputs.pop("Specular Tint")
+        inputs["Clearcoat"] = inputs.pop("Coat Weight")
+    for name, value in inputs.items():
+        socket = bsdf.inputs[name]
+        if isinstance(value, list) and len(socket.default_value) == 4:
+            value = list(value) + [1.0]
+        socket.default_value = value
+    links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return mat
+
+
+def setup_material(obj=None, json_path=None):
+    mat = make_material(json_path)
+    obj = obj or bpy.context.view_layer.objects.active
+    if obj is None or not hasattr(obj.data, "materials"):
+        print(f"wavelight: made material {{mat.name!r}}; no active object to give it to")
+        return mat
+    if obj.data.materials:
+        obj.data.materials[0] = mat
+    else:
+        obj.data.materials.append(mat)
+    print(f"wavelight: material {{mat.name!r}} on {{obj.name!r}}")
+    return mat
+
+
+if __name__ == "__main__":
+    setup_material()
+'''
+
+
+def blender_material_script() -> str:
+    return BLENDER_MATERIAL_SCRIPT.format()

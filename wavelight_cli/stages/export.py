@@ -9,14 +9,18 @@ from pipelines.errors import OptionError
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import write_json
-from ..scene import SceneFiles, require, solved_light
+from ..scene import SceneFiles, material_from_options, require, solved_light
 
-VERSION = 3  # 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py
+VERSION = 4  # 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py;
+# 4: the fitted material too: mitsuba/bsdf.xml, blender/material.json + setup_material.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
 
 def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path | None, height: int | None,
-                 face_size: int | None, console: Console, force: bool = False, lock_wait: float = 600.0):
+                 face_size: int | None, console: Console, force: bool = False, lock_wait: float = 600.0,
+                 material_path: Path | None = None):
+    """The light (and the material: --material, else the one solve fitted, out/reflectance.json, when
+    there is one) in each format's files under out/export/."""
     from pipelines.io import exports as ex
     from pipelines.io import images
     from pipelines.io.files import atomic_output
@@ -31,12 +35,16 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                          "drop --height (or resample the file)")
     source = light_path if light_path is not None else scene.out / "coefficients.h5"
     require(source, "run wavelight solve first, or pass --light")
+    if material_path is None and (scene.out / "reflectance.json").is_file():
+        material_path = scene.out / "reflectance.json"
+    material = material_from_options(material_path, None, None, None, None) if material_path is not None else None
     cache = SceneCache(scene.root)
     out = scene.out / "export"
     with cache.lock(lock_wait, console.say):
         upstream = {} if light_path is not None else {"solve": cache.key_of("solve") or "none"}
         stage = Stage("export", VERSION, {"formats": list(formats), "height": height, "face_size": face_size},
-                      {"light": source}, upstream)
+                      {"light": source, **({"material": material_path} if material_path is not None else {})},
+                      upstream)
 
         def work(d) -> Ran:
             if light_path is not None:
@@ -51,6 +59,8 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                     target = cubemap.CubeMap(face_size, cube.hemisphere)
                     texels, cube = cubemap.resample_cube(texels, cube, target), target
             outputs: list[Path] = []
+            mapping = ex.material_mapping(material) if material is not None else None
+            scale = mapping["light_scale"] if mapping else 1.0
             omega = cubemap.latlong_solid_angles(env.shape[0])[..., None]
             summary = {"source": "recovered" if light_path is None else str(light_path),
                        "energy_rgb": (env * omega).sum(axis=(0, 1)).tolist(), "latlong_height": env.shape[0],
@@ -59,22 +69,57 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                 outputs.append(images.write_exr(out / "mitsuba" / "light.exr", ex.to_mitsuba(env)))
                 xml = out / "mitsuba" / "emitter.xml"
                 with atomic_output(xml) as tmp:
-                    tmp.write_text(ex.mitsuba_xml("light.exr"))
+                    tmp.write_text(ex.mitsuba_xml("light.exr", scale))
                 outputs.append(xml)
+                if material is not None:
+                    bsdf = out / "mitsuba" / "bsdf.xml"
+                    with atomic_output(bsdf) as tmp:
+                        tmp.write_text(ex.mitsuba_bsdf_xml(material))
+                    outputs.append(bsdf)
             if "blender" in formats:
                 outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
                 script = out / "blender" / "setup_world.py"
                 with atomic_output(script) as tmp:
-                    tmp.write_text(ex.blender_world_script("light_equirect.exr"))
+                    tmp.write_text(ex.blender_world_script("light_equirect.exr", scale))
                 outputs.append(script)
+                if material is not None:
+                    outputs.append(write_json(out / "blender" / "material.json", ex.blender_material_description(material)))
+                    script = out / "blender" / "setup_material.py"
+                    with atomic_output(script) as tmp:
+                        tmp.write_text(ex.blender_material_script())
+                    outputs.append(script)
             if "opengl" in formats:
                 for name, face in ex.to_gl_faces(texels, cube).items():
                     outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
+            if mapping is not None:
+                summary["material"] = {
+                    "source": cache.relative(material_path), "model": material.model,
+                    "approximate": not mapping["exact"], "light_scale": scale, "notes": mapping["notes"]}
+                if "mitsuba" in formats:
+                    summary["material"]["mitsuba"] = {
+                        "file": "mitsuba/bsdf.xml", "bsdf": mapping["mitsuba"]["type"], "exact": mapping["exact"],
+                        "what": "the material as a Mitsuba 3 BSDF (mi.load_file, or paste into a <shape>)"}
+                if "blender" in formats:
+                    summary["material"]["blender"] = {
+                        "files": ["blender/material.json", "blender/setup_material.py"], "exact": mapping["blender_exact"],
+                        "what": "a Principled BSDF: its inputs and the settings in words (material.json); "
+                                "setup_material.py makes it on the active object"}
+            else:
+                summary["material"] = {"source": None, "note": "no material: run wavelight solve (out/reflectance.json) "
+                                                               "or pass --material to export one"}
             outputs.append(write_json(out / "export.json", {
                 **summary, "files": [cache.relative(p) for p in outputs],
+                "what": {"mitsuba/light.exr, mitsuba/emitter.xml": "the light as Mitsuba 3's envmap",
+                         "mitsuba/bsdf.xml": "the material as a Mitsuba 3 BSDF",
+                         "blender/light_equirect.exr, blender/setup_world.py": "the light as Blender's World",
+                         "blender/material.json, blender/setup_material.py": "the material as a Principled BSDF",
+                         "opengl/*.exr": "the light as OpenGL / three.js cube faces"},
                 "conventions": "README: Relight, insert, export, report (export) and pipelines/io/exports.py"}))
             summary["line"] = (f"export: {', '.join(formats)} -> {cache.relative(out)}/ "
-                               f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])})")
+                               f"(energy {' '.join(f'{e:.4g}' for e in summary['energy_rgb'])}"
+                               + (f"; material {material.model}: {'exact' if mapping['exact'] else 'approximate'} in "
+                                  f"Mitsuba" if mapping is not None and ({"mitsuba", "blender"} & set(formats)) else "")
+                               + ")")
             return Ran(outputs, summary)
 
         d = run_stage(cache, stage, console, force, work)

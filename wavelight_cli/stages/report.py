@@ -397,10 +397,11 @@ def _lobe(m: dict) -> str:
 EXPORT_TOOLS = (  # folder, tool, how to use (README: Relight, insert, export, report; pipelines/io/exports.py)
     ("mitsuba", "Mitsuba 3",
      "put `emitter.xml`'s `<emitter>` into the scene's XML, with `light.exr` beside the scene file "
-     "(its `to_world` turns Mitsuba's +Y-up map to our +Z up)"),
+     "(its `to_world` turns Mitsuba's +Y-up map to our +Z up); `bsdf.xml`'s `<bsdf>` into the object's `<shape>`"),
     ("blender", "Blender",
      "World > Surface: Environment Texture (Equirectangular), open `light_equirect.exr` (world +Z up, "
-     "no rotation needed)"),
+     "no rotation needed), or run `setup_world.py`; `setup_material.py` (or `material.json`'s settings) "
+     "makes the material on the active object"),
     ("opengl", "OpenGL / three.js",
      "the six faces are GL_TEXTURE_CUBE_MAP_POSITIVE_X ... NEGATIVE_Z in the order px, nx, py, ny, pz, nz "
      "for a Y-up world ((x, y, z)_gl = (x, z, -y)); three.js: load them (EXRLoader) into a CubeTexture in "
@@ -424,6 +425,13 @@ def _exports(doc: Doc, out: Path):
         if mine:
             rows.append([tool, ", ".join(f"`{m}`" for m in mine), how])
     s.table(["tool", "files (in out/export/)", "how to use"], rows, "lll")
+    mat = ex.get("material") if isinstance(ex.get("material"), dict) else {}
+    if mat.get("model"):
+        s.p(f"The material ({mat['model']}, from `{mat.get('source')}`) is exported too: "
+            + ("exactly, in Mitsuba." if not mat.get("approximate") else
+               "as the closest Mitsuba roughplastic, an approximation (export.json's notes say how).")
+            + (f" Its colours were divided by {_num(mat.get('light_scale'))} and the light multiplied by it."
+               if (mat.get("light_scale") or 1) > 1 else ""))
 
 
 @dataclass
