@@ -282,7 +282,7 @@ def gl_lookup(faces: dict[str, np.ndarray], directions: np.ndarray) -> np.ndarra
 
 
 # -- the fitted material ----------------------------------------------------------------------------------
-# What each of our reflectance models is in Mitsuba 3 and in Blender's Principled BSDF (README: Exports).
+# What each of our reflectance models is in Mitsuba 3 and in Blender's Principled BSDF (README: Relight, insert, export, report).
 #
 # - lambert: Mitsuba `diffuse` (reflectance kd), exact; Blender Principled with Specular IOR Level 0
 #   (no specular reflection at all: the base is Lambert, kd / pi), exact.
@@ -439,7 +439,7 @@ def mitsuba_bsdf_xml(material, bsdf_id: str = "wavelight") -> str:
             "an APPROXIMATION (no Mitsuba BSDF is this model)")
     lines = [f'<bsdf type="{kind}" id="{bsdf_id}" version="3.0.0">',
              f'    <!-- wavelight material: {material.model}; this BSDF is {what}.',
-             f'         Load this file (mi.load_file), or paste it into a <shape> (then drop version="3.0.0").']
+             '         Load this file (mi.load_file), or paste it into a <shape> (then drop version="3.0.0").']
     lines += [f'         {note}'.replace("--", "-") for note in m["notes"] if not note.startswith("Blender")]
     lines[-1] += " -->"
     lines += [f"    {_xml_value(k, v)}" for k, v in p.items()]
