@@ -345,7 +345,7 @@ def visibility_cmd(obj, force, **kw):
 
 MATERIAL_JSON = ("Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30}, or {'model': 'plastic', "
                  "'kd': [..], 'alpha': 0.1, 'distribution': 'ggx', 'ior': 1.49})")
-PLASTIC_HELP = {  # --alpha, --ior, --distribution: the `plastic` model's own parameters (README: reflectance)
+PLASTIC_HELP = {  # --alpha, --ior, --distribution: the `plastic` model's own parameters (README: The reflectance fit)
     "alpha": "plastic: microfacet roughness alpha, 0 = smooth (Mitsuba's alpha) [default: 0.1]",
     "ior": "plastic: the coating's index of refraction [default: 1.49]",
     "distribution": "plastic: microfacet distribution [default: ggx]",
