@@ -42,6 +42,7 @@ def test_overcast_brightness_is_unbiased(forward_render):
     assert forward_render("spot_overcast", 32).brightness_ratio() == pytest.approx(1.0, abs=0.01)
 
 
+@pytest.mark.slow  # ~30 s: the glossy teapot at R = 32
 def test_teapot_sun_phong_error_is_the_known_sun_quantisation(forward_render):
     """Glossy teapot (Blinn-Phong, n = 30) under a sun at 10.5 deg elevation: 9.6 % at R = 32.
 

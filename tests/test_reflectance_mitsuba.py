@@ -83,7 +83,8 @@ def test_teapot_specular_fit_relights_far_better_than_lambertian(teapot):
     assert len(result.rounds) >= 3  # lambert, then at least light -> LM -> light
 
 
-@pytest.mark.parametrize("name", [pytest.param("spot_overcast", marks=pytest.mark.slow), "bunny_sun"])
+@pytest.mark.slow  # ~35-45 s each; make test keeps test_reflectance.py::test_auto_stays_lambertian_on_a_diffuse_scene
+@pytest.mark.parametrize("name", ["spot_overcast", "bunny_sun"])
 def test_auto_keeps_the_diffuse_scenes_lambertian(forward_render, name):
     """The probe (LM with the Lambertian light fixed) finds no specular term worth keeping, so
     no specular light solve runs: one normal-equation pass, as for --reflectance lambert."""
