@@ -45,14 +45,6 @@ MATERIALS = {
 EXACT = ("lambert", "plastic-ggx", "plastic-beckmann")
 
 
-def agreement(first, second, reference):
-    mean = 0.5 * (first + second)
-    err = ts.relative_rmse(mean, reference)
-    noise = ts.noise_level(first, second, reference) / np.sqrt(2)
-    return {"error": err, "noise": noise, "bias": float(np.sqrt(max(0.0, err**2 - noise**2))),
-            "ratio": float(mean.mean() / reference.mean())}
-
-
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     work = tmp_path_factory.mktemp("material_export")
@@ -101,7 +93,7 @@ def test_exported_bsdf_renders_in_mitsuba_as_wavelight(setup, name):
     pytest.importorskip("mitsuba")
     t = time.perf_counter()
     first, second = mitsuba_render(setup, name)
-    a = agreement(first, second, ours(setup, name))
+    a = ts.agreement(first, second, ours(setup, name))
     print(f"Mitsuba {name}: error {100 * a['error']:.3f} %, noise {100 * a['noise']:.3f} %, "
           f"bias {100 * a['bias']:.3f} %, mean ratio {a['ratio']:.5f} ({time.perf_counter() - t:.1f} s)")
     assert a["noise"] < 0.012, a
@@ -117,7 +109,7 @@ def test_blinn_phong_export_is_the_closest_roughplastic(setup):
     assert info["material"]["approximate"]
     first, second = mitsuba_render(setup, "blinn-phong")
     ref = ours(setup, "blinn-phong")
-    a = agreement(first, second, ref)
+    a = ts.agreement(first, second, ref)
     lum = np.array([0.2126, 0.7152, 0.0722])
     mean = 0.5 * (first + second)
     worst = float(np.percentile(np.abs(mean @ lum - ref @ lum) / np.maximum(ref @ lum, 1e-6), 95))
@@ -157,7 +149,7 @@ def _blender_pixels(blender, setup, job):
 @pytest.mark.slow
 def test_blender_lambert_material_renders_as_wavelight(blender, setup):
     """Principled BSDF with Specular IOR Level 0 is Lambert: at Cycles' noise level."""
-    a = agreement(_blender_pixels(blender, setup, "lambert_seed1"), _blender_pixels(blender, setup, "lambert_seed2"),
+    a = ts.agreement(_blender_pixels(blender, setup, "lambert_seed1"), _blender_pixels(blender, setup, "lambert_seed2"),
                   ours(setup, "lambert"))
     print(f"Blender lambert: error {100 * a['error']:.3f} %, noise {100 * a['noise']:.3f} %, ratio {a['ratio']:.5f}")
     assert a["noise"] < 0.015, a
@@ -169,7 +161,7 @@ def test_blender_plastic_material_is_close_to_wavelight(blender, setup):
     """Principled BSDF (GGX, Roughness sqrt(alpha), IOR, Base Color for the head-on albedo) is not
     Mitsuba's roughplastic layering: reported, loosely bounded (not measured locally: bpy is not
     installed here; see the report)."""
-    a = agreement(_blender_pixels(blender, setup, "plastic-ggx_seed1"),
+    a = ts.agreement(_blender_pixels(blender, setup, "plastic-ggx_seed1"),
                   _blender_pixels(blender, setup, "plastic-ggx_seed2"), ours(setup, "plastic-ggx"))
     print(f"Blender plastic (GGX 0.2): error {100 * a['error']:.2f} %, noise {100 * a['noise']:.2f} %, "
           f"ratio {a['ratio']:.4f}")

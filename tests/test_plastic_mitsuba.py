@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 
 import tool_scenes as ts
@@ -63,14 +62,6 @@ def _wavelight(setup, distribution, alpha, resolution=32):
     return ts.footprint_mean(ts.wavelight_render, s["normals"], s["views"], setup["light"], m, resolution=resolution)
 
 
-def agreement(first, second, reference):
-    mean = 0.5 * (first + second)
-    err = ts.relative_rmse(mean, reference)
-    noise = ts.noise_level(first, second, reference) / np.sqrt(2)
-    return {"error": err, "noise": noise, "bias": float(np.sqrt(max(0.0, err**2 - noise**2))),
-            "ratio": float(mean.mean() / reference.mean())}
-
-
 # per case: the cube map's R, the light (the smooth coating mirrors the light: under the sun Mitsuba's
 # render is too noisy to compare at this size, ~10 %), the allowed error / noise, the largest noise
 # planned. Measured (error / noise, %): see the README's table.
@@ -100,13 +91,13 @@ def test_plastic_renders_as_mitsuba(setup, sky, kind, distribution, alpha):
     first, second = _mitsuba(scene, kind, distribution, alpha)
     t_mi = time.perf_counter() - t
     ours = _wavelight(scene, distribution, alpha, resolution)
-    a = agreement(first, second, ours)
+    a = ts.agreement(first, second, ours)
     print(f"{kind} {distribution} alpha {alpha} ({light}, R = {resolution}): error {100 * a['error']:.3f} %, "
           f"noise {100 * a['noise']:.3f} %, bias {100 * a['bias']:.3f} %, mean ratio {a['ratio']:.5f} "
           f"(Mitsuba {t_mi:.1f} s)")
     assert a["noise"] < max_noise, a
     assert a["error"] <= margin * a["noise"], a
     if resolution > 32:  # at R = 32 the texel shows, within a few noise levels
-        at32 = agreement(first, second, _wavelight(scene, distribution, alpha, 32))
+        at32 = ts.agreement(first, second, _wavelight(scene, distribution, alpha, 32))
         print(f"    at R = 32: error {100 * at32['error']:.3f} %, bias {100 * at32['bias']:.3f} %")
         assert at32["error"] <= 2.5 * a["noise"], at32

@@ -466,3 +466,13 @@ def mean_direction(latlong: np.ndarray) -> np.ndarray:
     w = (latlong @ np.array([0.2126, 0.7152, 0.0722])) * cubemap.latlong_solid_angles(H)
     m = (w[..., None] * cubemap.latlong_directions(H)).sum(axis=(0, 1))
     return m / np.linalg.norm(m)
+
+
+def agreement(first, second, reference):
+    """Two renders with different seeds against a reference: the relative RMSE of their mean, the
+    mean's own noise, the bias left beyond that noise, and the brightness ratio."""
+    mean = 0.5 * (first + second)
+    err = relative_rmse(mean, reference)
+    noise = noise_level(first, second, reference) / np.sqrt(2)
+    return {"error": err, "noise": noise, "bias": float(np.sqrt(max(0.0, err**2 - noise**2))),
+            "ratio": float(mean.mean() / reference.mean())}

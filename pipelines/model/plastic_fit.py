@@ -114,35 +114,10 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
                  rows=None, weights=None, max_pairs: int = MAX_PAIRS) -> PlasticData:
     """Precompute the LM's inputs for a light (N, 3), as `reflectance.specular_data` (same
     arguments; `material` gives the IOR and the distribution)."""
-    from .reflectance import LIT_TOL, MIN_FIT_PIXELS, FitError, _pixel_subset
+    from .reflectance import fit_inputs
 
-    L = np.asarray(light, dtype=np.float64)
-    if L.ndim == 1:
-        L = np.repeat(L[:, None], 3, axis=1)
-    lit = np.flatnonzero(np.any(np.abs(L) > LIT_TOL, axis=1))
-    if len(lit) == 0:
-        raise FitError("the light is zero everywhere: there is no highlight to fit")
-    P = vis.n_pixels
-    use = np.ones(P, bool) if use is None else np.asarray(use, bool)
-    held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
-    n_fit = int((use & ~held_out).sum())
-    if n_fit < MIN_FIT_PIXELS:
-        raise FitError(f"{n_fit} pixels are left to fit the reflectance to; a specular term (7 unknowns) needs "
-                       f"at least {MIN_FIT_PIXELS}")
-    if rows is None:
-        rows = _pixel_subset(use, max(1, max_pairs // len(lit)))
-        weights = None
-    else:
-        keep = use[rows]
-        rows = np.asarray(rows, np.int64)[keep]
-        weights = None if weights is None else np.asarray(weights, np.float64)[keep]
-        if len(rows) * len(lit) > max_pairs:  # an evenly spread part of the rows' order
-            pick = _pixel_subset(np.ones(len(rows), bool), max(1, max_pairs // len(lit)))
-            w = None if weights is None else weights * weights.sum() / max(weights[pick].sum(), 1e-300)
-            rows, weights = rows[pick], None if w is None else w[pick]
-        order = np.argsort(rows)
-        rows = rows[order]
-        weights = None if weights is None else weights[order]
+    L, lit, P, use, held_out, rows, weights = fit_inputs(vis, light, use, held_out, rows, weights, max_pairs,
+                                                          cap_given=True)
     s, cube = vis.samples, vis.cube
     K, n = len(lit), len(rows)
     arrays = {k: np.empty((n, K), np.float32) for k in ("A", "x2", "y2", "wx", "wy", "t2d")}

@@ -120,19 +120,12 @@ def _pixel_subset(candidates: np.ndarray, k: int) -> np.ndarray:
     return idx[np.unique(np.linspace(0, len(idx) - 1, k).round().astype(np.int64))]
 
 
-def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, model: str,
-                  use: np.ndarray | None = None, held_out: np.ndarray | None = None,
-                  max_pairs: int = MAX_PAIRS, rows: np.ndarray | None = None,
-                  weights: np.ndarray | None = None) -> SpecularData:
-    """Precompute the LM's inputs for a light (N, 3) over the used pixels.
-
-    Only texels with light are kept; if pixels x lit texels exceeds `max_pairs`, an evenly spread
-    subset of the pixels is used (reported as n_pixels_available vs len(photo)). `rows` (indices
-    of used pixels) fixes the pixels instead, each standing for `weights` pixels: the fit then
-    minimises the weighted residual (every term of a row is scaled by sqrt(weight)).
-    """
-    if model not in SPECULAR_MODELS:
-        raise ValueError(f"no specular term in model {model!r}; use one of {SPECULAR_MODELS}")
+def fit_inputs(vis, light, use, held_out, rows, weights, max_pairs: int, cap_given: bool = False):
+    """What a specular fit with the light fixed works on (Blinn-Phong's and plastic's): the light
+    per channel (N, 3), its lit texels, the pixel count, the used and held-out masks, and the rows
+    in increasing order with their weights: the given ones less the unused (with `cap_given`, an
+    evenly spread part of them, weights rescaled, when rows x lit texels exceed `max_pairs`), else an evenly spread subset
+    of the used pixels. Raises FitError when there is nothing to fit."""
     L = np.asarray(light, dtype=np.float64)
     if L.ndim == 1:
         L = np.repeat(L[:, None], 3, axis=1)
@@ -153,9 +146,30 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
         keep = use[rows]
         rows = np.asarray(rows, np.int64)[keep]
         weights = None if weights is None else np.asarray(weights, np.float64)[keep]
+        if cap_given and len(rows) * len(lit) > max_pairs:  # an evenly spread part of the rows' order
+            pick = _pixel_subset(np.ones(len(rows), bool), max(1, max_pairs // len(lit)))
+            w = None if weights is None else weights * weights.sum() / max(weights[pick].sum(), 1e-300)
+            rows, weights = rows[pick], None if w is None else w[pick]
         order = np.argsort(rows)
         rows = rows[order]
         weights = None if weights is None else weights[order]
+    return L, lit, P, use, held_out, rows, weights
+
+
+def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, model: str,
+                  use: np.ndarray | None = None, held_out: np.ndarray | None = None,
+                  max_pairs: int = MAX_PAIRS, rows: np.ndarray | None = None,
+                  weights: np.ndarray | None = None) -> SpecularData:
+    """Precompute the LM's inputs for a light (N, 3) over the used pixels.
+
+    Only texels with light are kept; if pixels x lit texels exceeds `max_pairs`, an evenly spread
+    subset of the pixels is used (reported as n_pixels_available vs len(photo)). `rows` (indices
+    of used pixels) fixes the pixels instead, each standing for `weights` pixels: the fit then
+    minimises the weighted residual (every term of a row is scaled by sqrt(weight)).
+    """
+    if model not in SPECULAR_MODELS:
+        raise ValueError(f"no specular term in model {model!r}; use one of {SPECULAR_MODELS}")
+    L, lit, P, use, held_out, rows, weights = fit_inputs(vis, light, use, held_out, rows, weights, max_pairs)
     s = vis.samples
     cube = vis.cube
     diffuse = np.empty((len(rows), 3))
