@@ -35,6 +35,8 @@ LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of t
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
+PRECAST_LEVELS = 4  # the coarse light that finds the bright directions before the solve: blocks of <= 4 x 4 texels at R = 32
+MAX_PRECAST = 256  # and at most this many of its texels are cast exactly (a few such blocks)
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
               "the albedo (README: Conventions)")
 
@@ -200,6 +202,24 @@ class _Systems:
         return (np.concatenate([fs.rows[top], fs.rows[rest], hs.rows[:nh]]),
                 np.concatenate([fs.weights[top], w_rest, w_held]))
 
+    def coarse_light(self, material: Material) -> np.ndarray:
+        """A quick Lambertian light under `material`'s kd: PRECAST_LEVELS wavelet levels on the head
+        of the fit sample (EXPLORE_ROWS rows, float32): where the bright directions are, before any
+        system of the whole sample is built."""
+        from ..light import bases
+        from ..light.rows import TransportRows
+        from ..light.system import LightSystem
+
+        fs = self.fit_sample
+        n = min(EXPLORE_ROWS, len(fs.rows))
+        head = TransportRows(self.vis, fs.rows[:n])
+        w = fs.weights[:n] * (fs.weights.sum() / max(fs.weights[:n].sum(), 1e-300))
+        fit = head.part(Material(kd=material.kd), self.values[fs.rows[:n]], w, fs.candidates)
+        fit.precision = "single"
+        empty = replace(fit.head(0), n_pixels=0)  # no held-out part: the levels are fixed
+        sol = bases.solve(LightSystem(fit, empty, 0.0), self.vis.cube, "wavelet", PRECAST_LEVELS)
+        return sol.light
+
     def recast(self, backend, texels: np.ndarray):
         """Cast the visibility toward `texels` for every pixel; later systems use it."""
         from ..geometry.visibility import VisibilityData, recast_columns
@@ -213,16 +233,36 @@ class _Systems:
             self.held_rows = TransportRows(self.vis, self.held_sample.rows)
 
 
+def precast_bright(systems: _Systems, backend, material: Material, progress: Progress) -> np.ndarray:
+    """Before the light is solved (sampled route, inferred visibility): the bright directions of a
+    coarse light (`_Systems.coarse_light`: blocks of a few texels) and their neighbouring texels,
+    cast exactly for every pixel, so that every later system, the level choice and the reflectance
+    rounds included, sees them exactly. Returns the texels cast (none for an overcast sky)."""
+    cube = systems.vis.cube
+    texels = bright_texels(systems.coarse_light(material), cube, most=MAX_PRECAST)
+    if len(texels):  # and their neighbours: the final light's sun may sit a texel off the coarse one's
+        d = cube.directions
+        reach = np.cos(1.5 * np.sqrt(cube.solid_angles[texels]))
+        near = np.flatnonzero(((d @ d[texels].T) >= reach[None, :]).any(axis=1))
+        texels = near if len(near) <= MAX_PRECAST else texels
+    if len(texels):
+        progress.note(f"casting {len(texels)} bright light directions (of a coarse light) exactly for every pixel")
+        systems.recast(backend, texels)
+    return texels
+
+
 def recast_bright(systems: _Systems, backend, sol, system, material: Material, light_options: LightOptions,
-                  progress: Progress, resolve: bool = True):
+                  progress: Progress, resolve: bool = True, done: np.ndarray | None = None):
     """Cast the directions that carry much of `sol`'s light exactly for every pixel (the visibility
-    was inferred there from neighbours) and solve the light again on the corrected system, levels
-    chosen afresh, so the report's levels and errors are all of the system the light is solved on.
-    Returns (solution, system, recast texels), the solution None unless `resolve`; all unchanged
-    when no direction needs it."""
+    was inferred there from neighbours; `done`: texels already cast) and solve the light again on
+    the corrected system, levels chosen afresh, so the report's levels and errors are all of the
+    system the light is solved on. Returns (solution, system, recast texels), the solution None
+    unless `resolve`; all unchanged when no direction needs it."""
     from ..light import bases
 
     texels = bright_texels(sol.light, systems.vis.cube)
+    if done is not None:
+        texels = np.setdiff1d(texels, done)
     if not len(texels):
         return sol, system, texels
     progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
@@ -347,6 +387,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")
     systems = _Systems(vis, values, usable, held, options, progress)
     light_options = options.light
+    precast = np.zeros(0, np.int64)
+    if adaptive and backend is not None and not options.exact:
+        precast = precast_bright(systems, backend, material, progress)
 
     def on_level(rec):
         h = "" if rec.held_out_rmse is None else f", held-out {100 * rec.held_out_rmse:.3f} %"
@@ -419,9 +462,11 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         system = systems.system(material)
         sol = full_solve(material, system)
         result.solution, result.context = sol, system
-    recast = np.zeros(0, np.int64)
-    if adaptive and backend is not None:
-        sol, system, recast = recast_bright(systems, backend, sol, system, material, light_options, progress)
+    recast = precast
+    if adaptive and backend is not None:  # the final light's bright directions not cast yet (all on --exact)
+        sol, system, more = recast_bright(systems, backend, sol, system, material, light_options, progress,
+                                          done=precast)
+        recast = np.union1d(precast, more).astype(np.int64)
     observability, unobservable = ls.observability(system)
     relit = render(systems.vis, sol.light, material)
     versus = versus_photo(relit, values, usable)
@@ -451,8 +496,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "pixels": {"used": int(len(values)), "saturated_excluded": int(saturated.sum()),
                    "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
         "sample": systems.sample_info,
-        "exact_directions": {"texels": recast.tolist(),
-                             "note": "directions that carry much of the light, cast for every pixel"},
+        "exact_directions": {"texels": recast.tolist(), "before_the_solve": int(len(precast)),
+                             "note": "directions that carry much of the light, cast for every pixel (on the "
+                                     "sampled route first those of a coarse light, before the solve; then any "
+                                     "of the final light's not cast yet, and the light solved again)"},
         "normal_equations_seconds": getattr(system, "seconds", 0.0),
         "observability": {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
                           "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum()),
