@@ -134,9 +134,10 @@ def named_view(scene: SceneFiles, folder: Path) -> View:
                 f"views-{name}", name, image, corr, folder)
 
 
-def scene_views(scene: SceneFiles, select: str | None = None) -> list[View]:
+def scene_views(scene: SceneFiles, select: str | None = None, need_main: bool = True) -> list[View]:
     """The scene's photos: the main one (the scene folder's image) first, then views/NAME/ in name
-    order; `select`: a comma-separated subset of their names (README: Scene folder)."""
+    order; `select`: a comma-separated subset of their names (README: Scene folder), which must
+    name the main photo when `need_main` (the light is solved with it)."""
     views = [photo_view(scene)]
     root = scene.root / VIEWS_DIR
     if root.is_dir():
@@ -150,7 +151,7 @@ def scene_views(scene: SceneFiles, select: str | None = None) -> list[View]:
         raise OptionError(f"--views names {', '.join(unknown) or 'no view'}, but the scene's views are "
                           f"{', '.join(known)}", None, "name views by their folder under views/ (main: the scene "
                           "folder's own photo)")
-    if MAIN_VIEW not in names:
+    if need_main and MAIN_VIEW not in names:
         raise OptionError(f"--views {select} leaves out {MAIN_VIEW} (the scene folder's own photo)", None,
                           f"add {MAIN_VIEW}, e.g. --views {MAIN_VIEW},{names[0]}")
     return [v for v in views if v.label in dict.fromkeys(names)]

@@ -105,7 +105,7 @@ def register_views(scene: SceneFiles, opts: RegisterOptions, console, force: boo
                    select: str | None = None):
     """Register every view (of `select`, default all) that has a correspondences.csv; with none, the
     main photo's missing correspondences.csv is the error, as for a single photo."""
-    views = scene_views(scene, select)
+    views = scene_views(scene, select, need_main=False)
     todo = [v for v in views if v.correspondences is not None and v.correspondences.is_file()]
     if not todo:
         todo = [views[0]]  # (its require() names the missing file)
