@@ -65,6 +65,9 @@ def test_three_views_report_per_view(tmp_path):
     assert obs["union"]["weakly_observed"] <= min(v["weakly_observed"] for v in obs["views"].values())
     for name in ("left", "right"):
         assert (scene / "out" / "views" / name / "observability_view.png").is_file()
+    ok(invoke(scene, "report"))
+    md = (scene / "out" / "report.md").read_text()
+    assert "## Views" in md and "| left (held out) | 44400 |" in md
 
 
 def test_two_views_hold_out_pixels_and_cache_per_view(tmp_path):
