@@ -253,6 +253,26 @@ def _vis_opts(kw):
                              kw.pop("backend"), kw.pop("visibility_method"))
 
 
+def views_options(f):
+    """Which of the scene's photos a command uses (README: Scene folder, views/NAME/)."""
+    opts = [
+        click.option("--views", "views", default=None, metavar="NAMES",
+                     help="Comma-separated photos to use: main (the scene folder's own photo) and the names of "
+                          "folders under views/ [default: all of them]."),
+        click.option("--single-view", is_flag=True, help="Use the main photo only (= --views main)."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def _views(kw) -> str | None:
+    views, single = kw.pop("views"), kw.pop("single_view")
+    if single and views not in (None, "main"):
+        raise OptionError(f"--single-view and --views {views} contradict each other", None, "pass one of them")
+    return "main" if single else views
+
+
 def _command(name, **kwargs):
     """A subcommand: its summary in the group's list (help_text.SUMMARY), its docstring and
     examples (help_text.EXAMPLES) as its help."""
@@ -318,29 +338,37 @@ def calibrate_cmd(obj, images, pattern, pattern_size, spacing, marker_size, dict
                    "their noise (kept only if the outline fits the edges better and the clicks' RMS stays under "
                    "--max-rms).")
 @click.option("--force", is_flag=True, help="Rerun even if up to date; replace a hand-written pose.json.")
+@views_options
 @click.pass_obj
-def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine, force):
+def register_cmd(obj, method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine, force, **kw):
     """The mesh's pose from 2D-3D correspondences (correspondences.csv + camera.json) -> pose.json,
-    out/register_overlay.png."""
+    out/register_overlay.png; each views/NAME/ with a correspondences.csv likewise -> its pose.json,
+    out/views/NAME/register_overlay.png."""
     from pipelines.controllers.register import RegisterOptions
 
-    from .stages.register import register_stage
+    from .stages.register import register_views
 
     scene = scene_folder(obj["scene"])
     opts = RegisterOptions(method, ransac, outlier_threshold, max_rms, max_mesh_distance, edge_refine)
-    register_stage(scene, opts, obj["console"], force, obj["lock_wait"])
+    register_views(scene, opts, obj["console"], force, obj["lock_wait"], _views(kw))
 
 
 @_command("visibility")
 @visibility_options
 @force_option
+@views_options
 @click.pass_obj
 def visibility_cmd(obj, force, **kw):
-    """Ray-cast the shadow of every light direction at every used pixel (cached, resumable)."""
+    """Ray-cast the shadow of every light direction at every used pixel of each photo (cached per
+    photo, resumable)."""
+    from .scene import scene_views
     from .stages.visibility import visibility_stage
 
     scene = scene_folder(obj["scene"])
-    visibility_stage(scene, _vis_opts(kw), obj["console"], force, obj["lock_wait"])
+    select = _views(kw)
+    opts = _vis_opts(kw)
+    for view in scene_views(scene, select):
+        visibility_stage(scene, opts, obj["console"], force, obj["lock_wait"], view)
 
 
 MATERIAL_JSON = ("Material JSON ({'model': 'blinn-phong', 'kd': [..], 'ks': [..], 'n': 30}, or {'model': 'plastic', "
@@ -508,6 +536,7 @@ def reflectance_options(f):
 @exposure_option
 @visibility_options
 @force_option
+@views_options
 @click.pass_obj
 def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
@@ -517,6 +546,7 @@ def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_
     from .stages import solve
 
     scene = scene_folder(obj["scene"])
+    select = _views(kw)
     given: set = set()
     material = _material(kw, given)
     if reflectance is None:
@@ -524,7 +554,7 @@ def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_
     refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
     opts = _solve_opts(kw, basis, sh_nonnegative)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
-                      refl, given)
+                      refl, given, select)
 
 
 @_command("compare")

@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from pipelines.errors import InputError, OptionError, require_file
 
+MAIN_VIEW = "main"  # the name of the scene folder's own photo among its views
+VIEWS_DIR = "views"  # views/NAME/: more photos of the scene under the same light
+VIEW_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 IMAGE_NAMES = ("image.exr", "image.hdr", "image.pfm", "image.tif", "image.tiff", "image.png",
                "image.jpg", "image.jpeg")
 
@@ -74,17 +78,83 @@ def require(path: Path | None, fix: str) -> Path:
 
 @dataclass(frozen=True)
 class View:
-    """A camera looking at the scene's mesh: the photo's own (camera.json, pose.json, mask.png) or
-    another one (relight --view). Each view has its own visibility results in the cache."""
+    """A camera looking at the scene's mesh: the photo's own (camera.json, pose.json, mask.png), a
+    photo of `views/NAME/`, or a camera without a photo (relight --view). Each view has its own
+    visibility results in the cache, under `name` ("photo" for the main photo, "views-NAME" for
+    views/NAME); `label` is the name users see ("main", "NAME")."""
 
     camera: Path
     pose: Path
     mask: Path | None = None
     name: str = "photo"
+    label: str = MAIN_VIEW
+    image: Path | None = None
+    correspondences: Path | None = None
+    folder: Path | None = None  # where the view's own files are (the scene folder for the main photo)
+
+    def require_image(self) -> Path:
+        if self.image is None:
+            where = "scene folder" if self.label == MAIN_VIEW else "view's folder"
+            raise InputError(f"no photo in the {where}", (self.folder or Path(".")) / "image.exr",
+                             f"add the photo as one of {', '.join(IMAGE_NAMES)}")
+        return self.image
 
 
 def photo_view(scene: SceneFiles) -> View:
-    return View(scene.camera, scene.pose, scene.mask)
+    return View(scene.camera, scene.pose, scene.mask, "photo", MAIN_VIEW, scene.image, scene.correspondences,
+                scene.root)
+
+
+def _find_image(folder: Path) -> Path | None:
+    for name in IMAGE_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def named_view(scene: SceneFiles, folder: Path) -> View:
+    """The view of `views/NAME/`: its own camera.json or else the scene's, its pose.json (or the one
+    register will write from its correspondences.csv), its mask.png if any."""
+    name = folder.name
+    if name == MAIN_VIEW or not VIEW_NAME.fullmatch(name):
+        raise InputError(f"a view's folder name must be letters, digits, '_', '-' or '.', and not {MAIN_VIEW!r} "
+                         "(the scene folder's own photo)", folder, "rename the folder")
+    image = _find_image(folder)
+    if image is None:
+        raise InputError("a view without a photo", folder / "image.exr",
+                         f"add the view's photo as one of {', '.join(IMAGE_NAMES)}, or remove the folder")
+    own_camera = folder / "camera.json"
+    pose, corr = folder / "pose.json", folder / "correspondences.csv"
+    if not pose.is_file() and not corr.is_file():
+        raise InputError("the view has neither pose.json nor correspondences.csv", pose,
+                         "write the view's pose.json (world -> camera) by hand, or add its correspondences.csv "
+                         "(u,v,x,y,z) and run wavelight register")
+    mask = folder / "mask.png"
+    return View(own_camera if own_camera.is_file() else scene.camera, pose, mask if mask.is_file() else None,
+                f"views-{name}", name, image, corr, folder)
+
+
+def scene_views(scene: SceneFiles, select: str | None = None, need_main: bool = True) -> list[View]:
+    """The scene's photos: the main one (the scene folder's image) first, then views/NAME/ in name
+    order; `select`: a comma-separated subset of their names (README: Scene folder), which must
+    name the main photo when `need_main` (the light is solved with it)."""
+    views = [photo_view(scene)]
+    root = scene.root / VIEWS_DIR
+    if root.is_dir():
+        views += [named_view(scene, d) for d in sorted(root.iterdir()) if d.is_dir() and not d.name.startswith(".")]
+    if select is None:
+        return views
+    names = [s.strip() for s in str(select).split(",") if s.strip()]
+    known = {v.label: v for v in views}
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise OptionError(f"--views names {', '.join(unknown) or 'no view'}, but the scene's views are "
+                          f"{', '.join(known)}", None, "name views by their folder under views/ (main: the scene "
+                          "folder's own photo)")
+    if need_main and MAIN_VIEW not in names:
+        raise OptionError(f"--views {select} leaves out {MAIN_VIEW} (the scene folder's own photo)", None,
+                          f"add {MAIN_VIEW}, e.g. --views {MAIN_VIEW},{names[0]}")
+    return [v for v in views if v.label in dict.fromkeys(names)]
 
 
 def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> View:
@@ -119,11 +189,21 @@ def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
     pixels that mask.png leaves out are not refused (they read as 0)."""
     from pipelines.io import images
 
-    path = scene.require_image()
-    img = images.read_image(path, linear=linear, mask=scene.mask)
+    return load_view_photo(photo_view(scene), camera, linear)
+
+
+def load_view_photo(view: View, camera, linear: bool | None = None):
+    """`load_photo` of any view with a photo: (path, `LoadedImage`), checked against its camera."""
+    from pipelines.io import images
+
+    path = view.require_image()
+    img = images.read_image(path, linear=linear, mask=view.mask)
     if (img.width, img.height) != (camera.width, camera.height):
-        raise InputError(f"image is {img.width}x{img.height} but camera.json says {camera.width}x{camera.height}",
-                         path, "use the photo the camera was calibrated for, or fix camera.json")
+        cam = view.camera.name if view.camera.parent == path.parent else str(view.camera)
+        fix = "or fix camera.json" if view.label == MAIN_VIEW else (
+            "or fix its camera.json" if cam == "camera.json" else "or give the view its own camera.json")
+        raise InputError(f"image is {img.width}x{img.height} but {cam} says {camera.width}x{camera.height}",
+                         path, f"use the photo the camera was calibrated for, {fix}")
     return path, img
 
 

@@ -335,9 +335,10 @@ def brightest(light: np.ndarray, cube) -> dict:
 
 
 # -- the controller -----------------------------------------------------------------------------
-def prepare_photo(vis, photo, options: SolveOptions, photo_path=None):
+def prepare_photo(vis, photo, options: SolveOptions, photo_path=None, held_out: np.ndarray | None = None):
     """The photo at the used pixels: (values (P, 3), usable (not saturated), held out), with the
-    checks that the photo holds something to fit."""
+    checks that the photo holds something to fit; `held_out` (P,) bool replaces the scattered
+    held-out pixels (several views: a whole view, `controllers.views.holdout`)."""
     from ..light.system import holdout_mask
 
     rows, cols = vis.samples.pixel[:, 0], vis.samples.pixel[:, 1]
@@ -349,7 +350,10 @@ def prepare_photo(vis, photo, options: SolveOptions, photo_path=None):
     if not np.any(values[~saturated] > 0):
         raise InputError(f"the photo is black over all {len(values)} used pixels: there is no light to recover",
                          photo_path, "check the exposure, the lens cap, the mask and that this is the right photo")
-    held = holdout_mask(vis.samples.pixel, options.held_out) if options.held_out > 0 else np.zeros(len(values), bool)
+    if held_out is not None:
+        held = np.asarray(held_out, bool)
+    else:
+        held = holdout_mask(vis.samples.pixel, options.held_out) if options.held_out > 0 else np.zeros(len(values), bool)
     return values, ~saturated, held
 
 
@@ -362,13 +366,15 @@ def plastic_starts(start: Material, given: set) -> list[Material]:
 
 def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectance: ReflectanceOptions,
                 given: set | None = None, backend=None, photo_path=None, progress: Progress | None = None,
-                adaptive: bool = False) -> SolveResult:
+                adaptive: bool = False, held_out: np.ndarray | None = None) -> SolveResult:
     """Recover the light and the reflectance from a photo.
 
     vis : the used pixels' visibility (`geometry.visibility.VisibilityData`); `adaptive`: it was
         inferred where neighbours agree (the bright directions are then cast again with `backend`).
     photo : `io.images.LoadedImage` of the camera's size; photo_path names it in error messages.
     material : the given material (its kd sets the light's scale; a fit starts from it).
+    held_out : (P,) bool, the rows held out for the model choice (default: a hash of the pixel
+        positions, `options.held_out` of them).
     """
     from ..light import bases
     from ..light import solution as ls
@@ -381,7 +387,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     if reflectance.fits:
         reflectance.start(material, given)
     t0 = time.monotonic()
-    values, usable, held = prepare_photo(vis, photo, options, photo_path)
+    values, usable, held = prepare_photo(vis, photo, options, photo_path, held_out)
     saturated = ~usable
     if saturated.any():
         progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")

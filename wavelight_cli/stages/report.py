@@ -204,6 +204,33 @@ def _result(doc: Doc, solve: dict, made: dict):
         s.items(list(solve["warnings"]))
 
 
+def _views(doc: Doc, solve: dict):
+    """Several photos under one light: per view its pixels, errors and what it adds to the map."""
+    views = solve.get("views")
+    if not views:
+        return
+    s = doc.section("views", "Views")
+    obs = solve.get("observability_by_view", {})
+    held = solve.get("held_out", {})
+    s.p(f"One light fitted to the used pixels of {len(views)} photos together. Model choice: "
+        f"{held.get('note', '')}. Relit error: the final light over the view's used pixels; held-out error: "
+        "over the view's held-out pixels, of the light the model choice kept (fitted without them).")
+    rows = []
+    for name, v in views.items():
+        o = obs.get("views", {}).get(name, {})
+        px = v["pixels"]
+        rows.append([name + (" (held out)" if v.get("held_out_whole") else ""), str(px["used"]), str(px["fit"]),
+                     str(px["held_out"]), _pct(v.get("relit_rmse")), _pct(v.get("held_out_rmse")),
+                     str(o.get("weakly_observed", "–")), str(o.get("adds", {}).get("well_observed", "–")),
+                     f"`{v.get('outputs', '')}`"])
+    s.table(["view", "pixels", "fit", "held out", "relit error", "held-out error", "weak texels alone",
+             "texels it adds", "relit / residual in"], rows, "lrrrrrrrl")
+    u = obs.get("union", {})
+    s.p(f"All views together: {u.get('unobservable')} unobservable and {u.get('weakly_observed')} weakly observed "
+        f"(sqrt(G_ii / max) < {obs.get('weak_threshold')}) of {obs.get('texels')} texels. 'Texels it adds': weakly "
+        "observed without the view, not with it. Each view's own map: `observability_view.png` in its folder.")
+
+
 def _light(doc: Doc, solve: dict, made: dict):
     if "light" not in made:
         return
@@ -482,6 +509,7 @@ def build(scene: SceneFiles) -> tuple[Doc, dict]:
     doc = Doc(f"wavelight report: {scene.root.name}")
     _intro(doc, solve, camera, pose)
     _result(doc, solve, made)
+    _views(doc, solve)
     _light(doc, solve, made)
     _levels(doc, solve, made)
     _reflectance(doc, refl, made)

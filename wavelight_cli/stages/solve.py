@@ -22,10 +22,12 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, write_json, write_light, write_residual,
                        write_view)
-from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
+from ..scene import MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_views
 from .visibility import visibility_stage
 
-VERSION = 7  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 8  # 8: several views (views/NAME) under one light, their rows together; whole-view hold-out from 3
+#   views; per-view results (solve_report.json "views", out/views/NAME/)
+# 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
@@ -68,35 +70,49 @@ def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
 
 def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material, exposure,
                 console: Console, force: bool = False, lock_wait: float = 600.0,
-                refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None):
-    """Recover the light (and the reflectance, by `refl`); see the module docstring for the outputs."""
+                refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None,
+                select: str | None = None):
+    """Recover the light (and the reflectance, by `refl`) from the scene's photos (`select`: a
+    comma-separated subset of the views, default all); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
+    from pipelines.controllers import views as mv
     from pipelines.io import light_file, visibility_file
-    from pipelines.io.scene_files import load_mesh
+    from pipelines.io.scene_files import load_mesh, read_camera
     from pipelines.geometry import raycast
 
     given = given or set()
     with option_errors():  # --reflectance and the fit's start (--shininess)
         refl.check()
         start = refl.start(material, given) if refl.fits else None
-    params = {**opts.cache_params(), "reflectance": refl.cache_params(), "material": material.to_json()}
+    views = scene_views(scene, select)
+    params = {**opts.cache_params(), "reflectance": refl.cache_params(), "material": material.to_json(),
+              "views": [v.label for v in views]}
     if start is not None:
         params["start"] = start.to_json()
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
+    cameras, photos = [camera], [(photo_path, photo)]
+    for v in views[1:]:
+        cameras.append(read_camera(require(v.camera, "write the view's camera.json (or the scene's shared one)")))
+        photos.append(load_view_photo(v, cameras[-1], True if opts.linear_input else None))
     cache = SceneCache(scene.root)
     out = scene.out
     with cache.lock(lock_wait, console.say):
-        vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait)
-        stage = Stage("solve", VERSION, params, {"photo": photo_path}, {vis.stage: vis.key}, {"exposure": exposure})
+        vis_runs = [visibility_stage(scene, vis_opts, console, lock_wait=lock_wait, view=v) for v in views]
+        inputs = {("photo" if v.label == MAIN_VIEW else f"photo:{v.label}"): p for v, (p, _) in zip(views, photos)}
+        stage = Stage("solve", VERSION, params, inputs, {r.stage: r.key for r in vis_runs}, {"exposure": exposure})
 
         def work(d) -> Ran:
             t0 = time.monotonic()
-            data = visibility_file.read_visibility(vis.path)
+            datas = [visibility_file.read_visibility(r.path) for r in vis_runs]
+            data, layout = mv.combine(datas, [v.label for v in views], [(c.height, c.width) for c in cameras])
+            stacked = mv.stacked_photo([ph for _, ph in photos], layout)
+            held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
             mesh = load_mesh(scene.mesh)
             backend = raycast.make_backend(mesh, vis_opts.backend)
-            result = ctl.solve_scene(data, photo, material, opts, refl, given,
+            result = ctl.solve_scene(data, stacked, material, opts, refl, given,
                                      backend if data.method == "adaptive" else None, photo_path,
-                                     ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive")
+                                     ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive",
+                                     held_out=held)
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
             outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
@@ -104,13 +120,27 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                                                 "the texel's radiance; black = unobservable", "fraction of the best"))
             outputs.append(out / "coefficients.h5")
             light_file.write_solution(outputs[-1], sol, cube, result.unobservable, {"material": str(m.to_json())})
-            cover = mesh_coverage(photo_view(scene), camera, mesh, backend)
-            outputs += write_view(out, "relit", result.relit, data.samples.pixel, (camera.height, camera.width),
-                                  photo.pixels, exposure, cover=cover)
-            rows, cols = data.samples.pixel[:, 0], data.samples.pixel[:, 1]
-            outputs.append(write_residual(out / "residual.png", result.relit, photo.pixels[rows, cols],
-                                          data.samples.pixel, (camera.height, camera.width),
-                                          ~photo.saturated[rows, cols]))
+            values, usable, held_rows = ctl.prepare_photo(data, stacked, opts, photo_path, held)
+            by_view = per_view = None
+            if len(views) > 1:
+                resp = mv.responses(result.vis, layout)
+                by_view = mv.observability_by_view(resp, layout)
+                per_view = mv.per_view_errors(result, values, usable, held_rows, layout, holdout)
+            for k, (v, cam, (_, ph)) in enumerate(zip(views, cameras, photos)):
+                sl = layout.rows(k)
+                pix = layout.image_pixels(data.samples.pixel, k)
+                vdir = out if k == 0 else out / "views" / v.label
+                cover = mesh_coverage(v, cam, mesh, backend)
+                outputs += write_view(vdir, "relit", result.relit[sl], pix, (cam.height, cam.width), ph.pixels,
+                                      exposure, cover=cover)
+                outputs.append(write_residual(vdir / "residual.png", result.relit[sl], ph.pixels[pix[:, 0], pix[:, 1]],
+                                              pix, (cam.height, cam.width), ~ph.saturated[pix[:, 0], pix[:, 1]]))
+                if by_view is not None:
+                    top = max(float(resp.sum(axis=0).max(initial=0.0)), 1e-300)
+                    outputs.append(write_cross_heat_png(vdir / "observability_view.png", np.sqrt(resp[k] / top), cube,
+                                                        1.0, f"this view's pixels alone (kd = 1), on the scale of "
+                                                        "all views together; black = unobservable",
+                                                        "fraction of the best of all views"))
             reflectance = {"format": "wavelight-reflectance-1", **result.reflectance.summary(),
                            "scale_ambiguity": ctl.SCALE_NOTE}
             outputs.append(write_json(out / "reflectance.json", reflectance))
@@ -119,20 +149,34 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                       "options": {**asdict(opts.light), "held_out": opts.held_out, "linear_input": opts.linear_input,
                                   "exact": opts.exact, "resolution": vis_opts.resolution,
                                   "hemisphere": vis_opts.hemisphere, "supersample": vis_opts.supersample,
-                                  "visibility": data.method, "reflectance": asdict(refl)},
+                                  "visibility": data.method, "reflectance": asdict(refl),
+                                  "views": [v.label for v in views]},
                       **{k: v for k, v in result.report.items() if k != "basis"},
+                      "held_out": holdout,
                       "reflectance": reflectance, "seconds": time.monotonic() - t0}
+            if per_view is not None:
+                for v, (p, _) in zip(views, photos):
+                    per_view[v.label]["photo"] = cache.relative(p)
+                    per_view[v.label]["outputs"] = cache.relative(out if v.label == MAIN_VIEW
+                                                                  else out / "views" / v.label)
+                report["views"] = per_view
+                report["observability_by_view"] = by_view
+                report["relit_note"] = "relit: the final light over the used pixels of every view together"
             outputs.append(write_json(out / "solve_report.json", report))
             summary = {"basis": sol.basis, "coefficients": sol.n_coefficients,
                        "relative_rmse_vs_photo": result.versus["relative_rmse_vs_photo"],
                        "held_out_rmse": sol.held_out_rmse, "unobservable_texels": int(result.unobservable.sum()),
                        "reflectance": m.to_json(), "line": _result_line(sol, result, report, cache, outputs[0]),
                        "decision_line": f"solve: reflectance {material_text(m)} ({result.reflectance.decision})",
-                       "warnings": result.warnings}
+                       "view_lines": _view_lines(report), "warnings": result.warnings}
             return Ran(outputs, jsonable(summary))
 
         def redisplay() -> list:
-            return [view_png(out / "relit.png", read_rgba(out / "relit.exr"), photo.pixels, exposure)]
+            done = [view_png(out / "relit.png", read_rgba(out / "relit.exr"), photo.pixels, exposure)]
+            for v, (_, ph) in zip(views[1:], photos[1:]):
+                vdir = out / "views" / v.label
+                done.append(view_png(vdir / "relit.png", read_rgba(vdir / "relit.exr"), ph.pixels, exposure))
+            return done
 
         d = run_stage(cache, stage, console, force, work, redisplay)
         rec = cache.record_of("solve") or {}
@@ -140,12 +184,38 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     if "line" in summary:  # results print even when the stage was up to date, and with --quiet
         console.result(summary["line"])
         console.result(summary["decision_line"])
+        for line in summary.get("view_lines", []):
+            console.result(line)
         if d.run:
             for w in summary.get("warnings", []):
                 console.say(f"solve: warning: {w}")
             for p in rec.get("outputs", {}):
                 console.say(f"solve: wrote {p}")
     return d
+
+
+def _view_lines(report: dict) -> list[str]:
+    """One result line per view (several views), and how the model choice held out pixels."""
+    views = report.get("views")
+    if not views:
+        return []
+
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.2f} %"
+
+    obs = report["observability_by_view"]
+    lines = [f"solve: {len(views)} views under one light; held out for the model choice: "
+             + (f"the whole view {report['held_out']['view']}" if report["held_out"]["mode"] == "view"
+                else report["held_out"]["mode"])]
+    for name, v in views.items():
+        o = obs["views"][name]
+        lines.append(f"solve: view {name}: {v['pixels']['used']} pixels, relit error {pct(v['relit_rmse'])}, held-out "
+                     f"{pct(v['held_out_rmse'])}{' (the whole view)' if v.get('held_out_whole') else ''}; "
+                     f"weakly observed texels {o['weakly_observed']} alone, it adds {o['adds']['well_observed']}")
+    u = obs["union"]
+    lines.append(f"solve: all views: {u['unobservable']} unobservable and {u['weakly_observed']} weakly observed "
+                 f"(< {obs['weak_threshold']:g}) of {obs['texels']} texels")
+    return lines
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:

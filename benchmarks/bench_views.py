@@ -1,0 +1,73 @@
+"""The cost of several photos against one: `wavelight solve` on a scene with views/ (e.g.
+tests/data/scenes/spot_textured_sun: main + left + right), from an empty cache, once with
+`--single-view` and once with every view, in the same run (same machine load), each on its own
+copy of the scene:
+
+    python benchmarks/bench_views.py SCENE_DIR WORK_DIR [--resolution 32] [--reflectance lambert]
+
+Prints one JSON line: per configuration the wall time of the whole command (visibility of every
+view, solve, outputs), its used pixels, the solve's own time, the sun's angle to the truth's
+dominant direction and the probe errors (as bench_e2e.py), and the ratios 3 views / 1 view.
+Not a test: timings depend on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_e2e import dominant_direction, probe_errors  # noqa: E402
+
+
+def run(scene: Path, work: Path, tag: str, extra: list[str], resolution: int, reflectance: str) -> dict:
+    dst = work / f"{scene.name}-{tag}"
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(scene, dst, ignore=shutil.ignore_patterns(".wavelight", "out"))
+    exe = Path(sys.executable).parent / "wavelight"
+    cmd = [str(exe), "-q", "-s", str(dst), "solve", "-R", str(resolution), "--reflectance", reflectance, *extra]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    report = json.loads((dst / "out" / "solve_report.json").read_text())
+    truth = dominant_direction(scene)
+    c = np.array(report["brightest_direction"]["centroid"]["direction"])
+    angle = None if truth is None else float(np.degrees(np.arccos(np.clip(c @ truth, -1, 1))))
+    obs = report.get("observability_by_view", {})
+    return {"seconds": round(seconds, 2), "solve_seconds": round(report["seconds"], 2),
+            "pixels": report["pixels"]["used"], "views": report["options"]["views"],
+            "held_out": report["held_out"]["mode"], "sun_angle_deg": angle,
+            "probes": probe_errors(dst / "out" / "coefficients.h5", scene),
+            "weakly_observed_union": obs.get("union", {}).get("weakly_observed"),
+            "weakly_observed_main_alone": obs.get("views", {}).get("main", {}).get("weakly_observed")}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("work", type=Path)
+    ap.add_argument("--resolution", type=int, default=32)
+    ap.add_argument("--reflectance", default="lambert")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    one = run(args.scene, args.work, "1view", ["--single-view"], args.resolution, args.reflectance)
+    every = run(args.scene, args.work, "views", [], args.resolution, args.reflectance)
+    print(json.dumps({"scene": args.scene.name, "resolution": args.resolution, "one_view": one, "all_views": every,
+                      "ratio_seconds": round(every["seconds"] / one["seconds"], 2),
+                      "ratio_pixels": round(every["pixels"] / one["pixels"], 2)}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,206 @@
+"""Several photos under one light: their used pixels as the rows of one system.
+
+Each view's visibility (`geometry.visibility.VisibilityData`, cached per view) is concatenated
+into one: the rows of view k follow those of view k - 1. The solve sees a single set of pixels,
+so everything that works on rows (transport, reflectance, rendering, per-pixel albedo from each
+row's surface sample) works unchanged. What looks at pixel positions (the held-out hash, the
+visibility change between neighbours, the stratified sample order) sees each view in its own band
+of a stacked layout: view k's pixel (r, c) is at (r + k * stride, c), stride a power of two
+larger than every view's height, so that no two views' pixels collide or neighbour each other and
+the bit-reversed sample order spreads every head of the sample over all the views.
+
+With 3 or more views the model choice (levels auto, reflectance auto) holds out one whole view
+(`held_out_view`) instead of scattered pixels: the held-out error then says how well the light
+predicts a photo it was not fitted to, which is what a new view needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+WHOLE_VIEW_HOLDOUT = 3  # from this many views the model choice holds out a whole view
+WEAK = 0.05  # a texel is weakly observed when sqrt(G_ii / max G_ii) over the union is below this
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each view's rows are in the combined rows, and their place in the stacked layout."""
+
+    names: list  # the views' labels, in row order
+    starts: np.ndarray  # (V + 1,) row offsets: view k's rows are starts[k]:starts[k + 1]
+    shapes: list  # (H, W) of each view's image
+    stride: int  # stacked-layout rows per view
+
+    @property
+    def view_of_row(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.names)), np.diff(self.starts))
+
+    def rows(self, k: int) -> slice:
+        return slice(int(self.starts[k]), int(self.starts[k + 1]))
+
+    def image_pixels(self, pixel: np.ndarray, k: int) -> np.ndarray:
+        """View k's rows' (row, col) in its own image (from the stacked layout)."""
+        p = np.array(pixel[self.rows(k)], copy=True)
+        p[:, 0] -= k * self.stride
+        return p
+
+
+def combine(datas: list, names: list, shapes: list):
+    """One VisibilityData of the views' rows, in the stacked layout, and its `Layout`."""
+    from ..geometry.camera import PixelSamples
+    from ..geometry.visibility import VisibilityData
+
+    first = datas[0]
+    for d in datas[1:]:
+        if d.cube.n_texels != first.cube.n_texels or d.supersample != first.supersample:
+            raise ValueError("the views' visibility must share the cube map and the supersampling")
+    stride = 1 << int(np.ceil(np.log2(max(h for h, _ in shapes) + 1)))
+    starts = np.concatenate([[0], np.cumsum([d.n_pixels for d in datas])])
+    if len(datas) == 1:
+        return first, Layout(list(names), starts, list(shapes), stride)
+    fields = {}
+    for name in ("position", "normal", "geometric_normal", "view", "face"):
+        fields[name] = np.concatenate([getattr(d.samples, name) for d in datas])
+    pixel = [np.asarray(d.samples.pixel).copy() for d in datas]
+    for k, p in enumerate(pixel):
+        p[:, 0] += k * stride
+    samples = PixelSamples(pixel=np.concatenate(pixel).astype(np.int32), **fields)
+    stored = np.concatenate([np.asarray(d.stored) for d in datas])
+    method = "adaptive" if any(d.method == "adaptive" for d in datas) else first.method
+    return (VisibilityData(samples, first.cube, first.supersample, stored, method),
+            Layout(list(names), starts, list(shapes), stride))
+
+
+def stacked_photo(photos: list, layout: Layout):
+    """The views' photos stacked in the layout (one `LoadedImage` that the solve indexes by the
+    combined rows' pixels)."""
+    if len(photos) == 1:
+        return photos[0]
+    W = max(w for _, w in layout.shapes)
+    pixels = np.zeros((layout.stride * len(photos), W, 3), photos[0].pixels.dtype)
+    saturated = np.zeros(pixels.shape[:2], bool)
+    for k, ph in enumerate(photos):
+        h, w = ph.pixels.shape[:2]
+        pixels[k * layout.stride:k * layout.stride + h, :w] = ph.pixels
+        saturated[k * layout.stride:k * layout.stride + h, :w] = ph.saturated
+    return replace(photos[0], pixels=pixels, saturated=saturated)
+
+
+def held_out_view(layout: Layout, main: str = "main") -> int:
+    """The view held out for the model choice with >= WHOLE_VIEW_HOLDOUT views: of the views other
+    than the main photo, the one with the fewest used pixels (the model choice keeps the most rows)."""
+    counts = np.diff(layout.starts)
+    others = [k for k, n in enumerate(layout.names) if n != main] or list(range(len(layout.names)))
+    return min(others, key=lambda k: (counts[k], k))
+
+
+def holdout(layout: Layout, fraction: float, main: str = "main") -> tuple[np.ndarray | None, dict]:
+    """The held-out rows (None: the solve's own scattered pixels) and how they were chosen."""
+    n = len(layout.names)
+    if fraction <= 0:
+        return None, {"mode": "none", "note": "--held-out 0: nothing held out"}
+    if n < WHOLE_VIEW_HOLDOUT:
+        return None, {"mode": "pixels", "fraction": fraction,
+                      "note": f"{100 * fraction:g} % of each view's pixels (a hash of their position) held out; "
+                              f"whole views are held out from {WHOLE_VIEW_HOLDOUT} views on"}
+    k = held_out_view(layout, main)
+    mask = layout.view_of_row == k
+    return mask, {"mode": "view", "view": layout.names[k],
+                  "note": f"the whole view {layout.names[k]!r} (of the views other than {main!r}, the one with the "
+                          "fewest used pixels) is held out to choose the light's levels and the reflectance model; "
+                          "the chosen model is then fitted to every view"}
+
+
+def texel_response(vis, rows: slice | None = None, block: int = 2048) -> np.ndarray:
+    """(N,) sum over the rows' pixels of (V_ji max(0, N_j . d_i) omega_i)^2: the diagonal of the
+    Lambertian (kd = 1) G = T'T of these pixels alone, what the observability map shows."""
+    from ..geometry.visibility import decode
+
+    rows = rows or slice(0, vis.n_pixels)
+    dirs = vis.cube.directions.astype(np.float32)
+    omega = vis.cube.solid_angles.astype(np.float32)
+    out = np.zeros(vis.cube.n_texels, np.float64)
+    for a in range(rows.start, rows.stop, block):
+        sl = slice(a, min(rows.stop, a + block))
+        V = decode(np.asarray(vis.stored[sl]), vis.cube.n_texels, vis.encoding)
+        cos = np.maximum(vis.samples.normal[sl].astype(np.float32) @ dirs.T, 0)
+        out += ((V * cos * omega) ** 2).sum(axis=0, dtype=np.float64)
+    return out
+
+
+def responses(vis, layout: Layout) -> np.ndarray:
+    """(V, N) `texel_response` of each view's rows."""
+    return np.stack([texel_response(vis, layout.rows(k)) for k in range(len(layout.names))])
+
+
+def observability_by_view(per: np.ndarray, layout: Layout) -> dict:
+    """How each view observes the light, on one scale (the union's best-observed texel = 1), from
+    the views' `responses`: per view its unobservable and weakly observed (< WEAK) texels alone, and
+    what it adds to the others (texels that are unobservable / weak without it)."""
+    union = per.sum(axis=0)
+    top = max(float(union.max(initial=0.0)), 1e-300)
+
+    def counts(d):
+        obs = np.sqrt(np.maximum(d, 0) / top)
+        return int((d <= 0).sum()), int((obs < WEAK).sum())
+
+    views = {}
+    for k, name in enumerate(layout.names):
+        u, w = counts(per[k])
+        ou, ow = counts(union - per[k]) if len(layout.names) > 1 else (len(union), len(union))
+        views[name] = {"unobservable": u, "weakly_observed": w, "without_it": {"unobservable": ou, "weakly_observed": ow},
+                       "adds": {"observable": ou - counts(union)[0], "well_observed": ow - counts(union)[1]}}
+    u, w = counts(union)
+    return {"texels": int(len(union)), "weak_threshold": WEAK,
+            "union": {"unobservable": u, "weakly_observed": w}, "views": views,
+            "note": "per texel sqrt(G_ii / max G_ii) of the Lambertian transport (kd = 1) over every used pixel of "
+                    "a view, on the union's scale; unobservable: no pixel responds; weakly observed: below "
+                    f"{WEAK:g}; 'adds': texels that are unobservable / weakly observed without the view and not "
+                    "with it"}
+
+
+def subset(vis, rows: np.ndarray):
+    """The VisibilityData of some rows (indices) of `vis`."""
+    from ..geometry.camera import PixelSamples
+    from ..geometry.visibility import VisibilityData
+
+    rows = np.asarray(rows)
+    s = vis.samples
+    samples = PixelSamples(*(np.asarray(getattr(s, f))[rows] for f in
+                             ("pixel", "position", "normal", "geometric_normal", "view", "face")))
+    return VisibilityData(samples, vis.cube, vis.supersample, np.asarray(vis.stored)[rows], vis.method)
+
+
+def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.ndarray, layout: Layout,
+                    holdout_info: dict) -> dict:
+    """Per view: pixels (used / fit / held out / saturated), the relit error of the final light over
+    its used pixels, and the held-out error over its held-out pixels of the light the model choice
+    kept (fitted without them: the chosen level before the final re-solve on every row)."""
+    from ..metrics import versus_photo
+    from ..model.render import render
+
+    sol = result.solution
+    levels = getattr(sol, "levels", None) or []
+    held_light = levels[sol.chosen].light if levels and 0 <= sol.chosen < len(levels) else None
+    held_rows = np.flatnonzero(held & usable)
+    held_relit = None
+    if held_light is not None and len(held_rows):
+        held_relit = np.zeros_like(values)
+        held_relit[held_rows] = render(subset(result.vis, held_rows), held_light, result.material)
+    out = {}
+    for k, name in enumerate(layout.names):
+        sl = layout.rows(k)
+        u, h = usable[sl], held[sl]
+        v = versus_photo(result.relit[sl], values[sl], u)
+        rec = {"pixels": {"used": int(sl.stop - sl.start), "saturated_excluded": int((~u).sum()),
+                          "fit": int((u & ~h).sum()), "held_out": int((u & h).sum())},
+               "relit_rmse": v["relative_rmse_vs_photo"], "bias": v["bias_vs_photo"],
+               "held_out_rmse": None}
+        if held_relit is not None and (u & h).any():
+            rec["held_out_rmse"] = versus_photo(held_relit[sl], values[sl], u & h)["relative_rmse_vs_photo"]
+        if holdout_info.get("mode") == "view":
+            rec["held_out_whole"] = name == holdout_info["view"]
+        out[name] = rec
+    return out

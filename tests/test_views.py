@@ -1,0 +1,187 @@
+"""Several photos under one light (issue 19, item 3): views/NAME/ in the scene folder, register and
+visibility per view, one light solved on every view's rows, the per-view report, the errors.
+
+The fast tests run at R = 8 on a copy of spot_textured_sun (main + views/left + views/right); the
+accuracy comparison (1 view against 3) runs at the default R = 32 and is marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import RES, invoke, ok
+
+SCENES = Path(__file__).parent / "data" / "scenes"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def copy_views_scene(tmp_path: Path, name: str = "spot_textured_sun") -> Path:
+    dst = tmp_path / name
+    shutil.copytree(SCENES / name, dst, ignore=shutil.ignore_patterns(".wavelight", "out", "truth"))
+    return dst
+
+
+def error_line(result) -> str:
+    assert result.exit_code != 0, result.stdout + result.stderr
+    text = (result.stderr or "") + (result.stdout or "")
+    lines = [ln for ln in text.splitlines() if ln.startswith("Error:")]
+    assert len(lines) == 1, text
+    assert "Traceback" not in text
+    return lines[0]
+
+
+def solve_fast(scene: Path, *extra: str):
+    return invoke(scene, "solve", "-R", RES, "--reflectance", "lambert", *extra)
+
+
+def test_three_views_report_per_view(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    ok(solve_fast(scene))
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    assert report["options"]["views"] == ["main", "left", "right"]
+    assert report["held_out"]["mode"] == "view" and report["held_out"]["view"] == "left"  # fewest pixels of the two
+    views = report["views"]
+    assert list(views) == ["main", "left", "right"]
+    total = sum(v["pixels"]["used"] for v in views.values())
+    assert total == report["pixels"]["used"]
+    for name, v in views.items():
+        assert v["pixels"]["used"] > 20000
+        assert 0 < v["relit_rmse"] < 0.6
+        assert (scene / v["outputs"] / "relit.exr").is_file() and (scene / v["outputs"] / "residual.png").is_file()
+    # the whole left view is held out (for the model choice), nothing of the others
+    assert views["left"]["pixels"]["held_out"] == views["left"]["pixels"]["used"] - views["left"]["pixels"]["saturated_excluded"]
+    assert views["main"]["pixels"]["held_out"] == 0 and views["right"]["pixels"]["held_out"] == 0
+    assert views["left"]["held_out_rmse"] is not None and views["main"]["held_out_rmse"] is None
+    # a light fitted without the left view predicts it no better than the one fitted with it
+    assert views["left"]["held_out_rmse"] >= views["left"]["relit_rmse"] - 1e-3
+    obs = report["observability_by_view"]
+    assert set(obs["views"]) == {"main", "left", "right"}
+    assert obs["union"]["weakly_observed"] <= min(v["weakly_observed"] for v in obs["views"].values())
+    for name in ("left", "right"):
+        assert (scene / "out" / "views" / name / "observability_view.png").is_file()
+    ok(invoke(scene, "report"))
+    md = (scene / "out" / "report.md").read_text()
+    assert "## Views" in md and "| left (held out) | 44400 |" in md
+
+
+def test_two_views_hold_out_pixels_and_cache_per_view(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    ok(solve_fast(scene, "--single-view"))
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    assert "views" not in report and report["options"]["views"] == ["main"]
+    assert not (scene / ".wavelight" / "visibility" / f"views-left-R{RES}.h5").exists()
+    err = ok(solve_fast(scene, "--views", "main,left"))
+    # adding a view computes its visibility only
+    assert f"visibility/photo/R{RES}: skipped" in err
+    assert f"visibility/views-left/R{RES}: running" in err
+    assert f"visibility/views-right/R{RES}" not in err
+    assert "solve: running (params changed: views" in err
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    assert report["held_out"]["mode"] == "pixels"
+    for v in report["views"].values():  # ~10 % of each view's pixels held out, its error reported
+        assert 0.05 < v["pixels"]["held_out"] / v["pixels"]["used"] < 0.15
+        assert v["held_out_rmse"] is not None
+    # changing one view's photo reruns the solve, not the visibility
+    img = scene / "views" / "left" / "image.exr"
+    from pipelines.io import images
+
+    pixels = images.read_image(img).pixels
+    images.write_exr(img, pixels * 1.5)
+    err = ok(solve_fast(scene, "--views", "main,left"))
+    assert "solve: running (input changed: photo:left)" in err
+    assert f"visibility/views-left/R{RES}: skipped" in err
+
+
+def test_register_a_view(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    truth = json.loads((scene / "views" / "left" / "pose.json").read_text())
+    (scene / "views" / "left" / "pose.json").unlink()
+    r = invoke(scene, "solve", "-R", RES)
+    assert "views/left/pose.json" in error_line(r) and "wavelight register" in error_line(r)
+    ok(invoke(scene, "register", "--views", "left"))
+    pose = json.loads((scene / "views" / "left" / "pose.json").read_text())
+    assert pose["registration"]["rms_px"] < 1.0
+    R0, R1 = np.array(truth["R"]), np.array(pose["R"])
+    angle = np.degrees(np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1, 1)))
+    assert angle < 0.5
+    assert (scene / "out" / "views" / "left" / "register_overlay.png").is_file()
+    man = json.loads((scene / ".wavelight" / "manifest.json").read_text())
+    assert "register/left" in man["stages"] and "register" not in man["stages"]
+
+
+def test_view_image_size_differs_from_its_camera(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    cam = json.loads((scene / "views" / "right" / "camera.json").read_text())
+    cam["width"] = 300
+    (scene / "views" / "right" / "camera.json").write_text(json.dumps(cam))
+    line = error_line(solve_fast(scene))
+    assert "views/right/image.exr: image is 320x240 but camera.json says 300x240" in line
+    assert not (scene / "out").exists() and not (scene / ".wavelight" / "visibility").exists()
+
+
+def test_view_that_sees_nothing_of_the_mesh(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    (scene / "views" / "left" / "pose.json").write_text(json.dumps(
+        {"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [100.0, 0.0, 10.0]}))
+    line = error_line(solve_fast(scene))
+    assert "views/left/pose.json" in line and "no pixel of the image sees the mesh" in line
+    assert not (scene / "out").exists()  # nothing of the solve written
+    assert not (scene / ".wavelight" / "visibility" / f"views-left-R{RES}.h5").exists()
+
+
+def test_view_without_pose_or_correspondences_and_bad_names(tmp_path):
+    scene = copy_views_scene(tmp_path)
+    for name in ("pose.json", "correspondences.csv"):
+        (scene / "views" / "right" / name).unlink()
+    line = error_line(solve_fast(scene))
+    assert "views/right/pose.json: the view has neither pose.json nor correspondences.csv" in line
+    shutil.rmtree(scene / "views" / "right")
+    r = solve_fast(scene, "--views", "main,nope")
+    assert r.exit_code == 2 and "nope" in error_line(r) and "main, left" in error_line(r)
+    r = solve_fast(scene, "--views", "left")
+    assert r.exit_code == 2 and "leaves out main" in error_line(r)
+    r = solve_fast(scene, "--views", "main,left", "--single-view")
+    assert r.exit_code == 2
+    (scene / "views" / "left" / "image.exr").unlink()
+    assert "views/left/image.exr: a view without a photo" in error_line(solve_fast(scene))
+    assert not (scene / "out").exists()
+
+
+def _sun_angle_and_probes(scene: Path, truth_scene: Path) -> tuple[float | None, dict]:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_e2e import dominant_direction, probe_errors
+
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    c = np.array(report["brightest_direction"]["centroid"]["direction"])
+    truth = dominant_direction(truth_scene)
+    angle = None if truth is None else float(np.degrees(np.arccos(np.clip(c @ truth, -1, 1))))
+    return angle, probe_errors(scene / "out" / "coefficients.h5", truth_scene)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["spot_textured_sun", "spot_textured_overcast"])
+def test_three_views_lower_the_light_error(tmp_path, name):
+    """One light fitted to 3 views against the main view alone, both Lambertian with one uniform
+    material (the texture is not modelled yet: the probes' errors are high on both, the sun
+    direction is robust to it). Measured (R = 32): sun 0.92 -> 0.82 deg, diffuse probe 14.7 ->
+    13.6 %, glossy 44.7 -> 40.6 %; overcast: diffuse 21.0 -> 20.1 %, glossy 62.6 -> 55.4 %."""
+    scene = copy_views_scene(tmp_path, name)
+    ok(invoke(scene, "solve", "--reflectance", "lambert", "--single-view"))
+    one = _sun_angle_and_probes(scene, SCENES / name)
+    ok(invoke(scene, "solve", "--reflectance", "lambert"))
+    three = _sun_angle_and_probes(scene, SCENES / name)
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    assert three[1]["diffuse"] < 0.97 * one[1]["diffuse"]
+    assert three[1]["glossy"] < 0.95 * one[1]["glossy"]
+    if one[0] is not None:  # a sun: found within 2 deg from either, no worse from three
+        assert one[0] < 2.0 and three[0] < 2.0 and three[0] <= one[0] + 0.05
+    # why: directions the main view alone observes weakly, the others see
+    obs = report["observability_by_view"]
+    assert obs["union"]["weakly_observed"] < 0.2 * obs["views"]["main"]["weakly_observed"]
+    assert obs["views"]["left"]["adds"]["well_observed"] + obs["views"]["right"]["adds"]["well_observed"] > 50
