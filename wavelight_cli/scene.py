@@ -187,3 +187,17 @@ def solved_light(scene: SceneFiles):
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"cannot read the solved light ({str(exc).splitlines()[0]})", path,
                          "rerun wavelight solve --force") from None
+
+
+def scene_albedo(scene: SceneFiles, material_path, mesh, camera, pose):
+    """The per-pixel albedo function of the solve's parts and textures (`model.parts.view_albedo`),
+    when the material is a reflectance.json that lists parts; else None (one uniform material)."""
+    from pipelines.model.parts import view_albedo
+
+    if material_path is None or Path(material_path).suffix.lower() != ".json":
+        return None
+    try:
+        data = json.loads(Path(material_path).read_text())
+    except (OSError, ValueError):
+        return None  # the material reader has already refused a broken file
+    return view_albedo(data if isinstance(data, dict) else None, mesh, scene.mesh, scene.root, camera, pose)

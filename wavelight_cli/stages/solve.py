@@ -25,11 +25,12 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 7  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 8  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
-#   (candidates, decision), plastic fields in reflectance.json
+#   (candidates, decision), plastic fields in reflectance.json; 8: several parts and textures (the mesh's
+#   materials, materials.toml: per-part kd fitted with the light), reflectance.json's `parts`
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
@@ -68,35 +69,42 @@ def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
 
 def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material, exposure,
                 console: Console, force: bool = False, lock_wait: float = 600.0,
-                refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None):
+                refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None, parts=None):
     """Recover the light (and the reflectance, by `refl`); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
     from pipelines.io import light_file, visibility_file
     from pipelines.io.scene_files import load_mesh
     from pipelines.geometry import raycast
+    from pipelines.model.parts import PartsOptions, parts_files
 
     given = given or set()
+    parts = parts or PartsOptions()
     with option_errors():  # --reflectance and the fit's start (--shininess)
         refl.check()
         start = refl.start(material, given) if refl.fits else None
     params = {**opts.cache_params(), "reflectance": refl.cache_params(), "material": material.to_json()}
     if start is not None:
         params["start"] = start.to_json()
+    params["parts"] = parts.cache_params()
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
+    part_inputs = parts_files(scene.mesh, scene.root) if parts.parts else {}
     cache = SceneCache(scene.root)
     out = scene.out
     with cache.lock(lock_wait, console.say):
         vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait)
-        stage = Stage("solve", VERSION, params, {"photo": photo_path}, {vis.stage: vis.key}, {"exposure": exposure})
+        stage = Stage("solve", VERSION, params, {"photo": photo_path, **part_inputs}, {vis.stage: vis.key},
+                      {"exposure": exposure})
 
         def work(d) -> Ran:
             t0 = time.monotonic()
             data = visibility_file.read_visibility(vis.path)
             mesh = load_mesh(scene.mesh)
+            albedo = _pixel_albedo(scene, mesh, data, camera, parts, console) if parts.parts else None
             backend = raycast.make_backend(mesh, vis_opts.backend)
             result = ctl.solve_scene(data, photo, material, opts, refl, given,
                                      backend if data.method == "adaptive" else None, photo_path,
-                                     ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive")
+                                     ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive",
+                                     albedo=albedo)
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
             outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
@@ -113,6 +121,17 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                                           ~photo.saturated[rows, cols]))
             reflectance = {"format": "wavelight-reflectance-1", **result.reflectance.summary(),
                            "scale_ambiguity": ctl.SCALE_NOTE}
+            if albedo is not None:
+                from pipelines.model.parts import parts_summary
+
+                sp = albedo.parts
+                reflectance["parts"] = parts_summary(albedo, mesh, m.kd)
+                reflectance["parts_options"] = parts.cache_params()
+                reflectance["reference_part"] = {"name": sp.names[sp.reference], "chosen_by": sp.reference_source}
+                reflectance["scale_ambiguity"] = (
+                    f"light x albedo is only known as a product: the reference part {sp.names[sp.reference]!r} keeps "
+                    "its start colour (its texture or .mtl Kd, times kd), the light takes the rest; the other parts' "
+                    "albedo relative to it (relative_to_reference) is what the photo tells")
             outputs.append(write_json(out / "reflectance.json", reflectance))
             report = {"format": "wavelight-solve-report-1", "scene": str(scene.root), "photo": photo_path.name,
                       "basis": sol.basis,
@@ -146,6 +165,26 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             for p in rec.get("outputs", {}):
                 console.say(f"solve: wrote {p}")
     return d
+
+
+def _pixel_albedo(scene: SceneFiles, mesh, data, camera, parts, console: Console):
+    """The used pixels' known relative albedo from the mesh's parts and textures (None: one uniform
+    material), each pixel's texture lookup filtered to its footprint (`model.parts`)."""
+    from pipelines.io.scene_files import read_pose
+    from pipelines.model import parts as pm
+
+    sp = pm.scene_parts(mesh, scene.mesh, scene.root, parts.texture, parts.texture_colour)
+    if sp is None:
+        return None
+    s = data.samples
+    base, part = pm.pixel_base(sp, mesh, s.face, s.position, pm.pixel_footprint(s, camera, read_pose(scene.pose)))
+    pm.choose_reference(sp, part)
+    seen = np.bincount(part, minlength=len(sp.parts))
+    console.say("solve: parts: " + ", ".join(
+        f"{p.name} ({p.faces} faces, {int(seen[k])} pixels, "
+        f"{'texture ' + Path(p.texture.path).name if p.texture is not None else 'vertex colours' if p.vertex_colours else 'kd'}"
+        f"{', reference' if k == sp.reference else ''})" for k, p in enumerate(sp.parts)))
+    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp)
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:
