@@ -245,3 +245,18 @@ def test_parts_and_texture_beat_the_uniform_model(tmp_path, src):
     truth = json.loads((src / "truth" / "material.json").read_text())["ground_over_spot_albedo_rgb"]
     ground = [p for p in parts["parts"] if p["name"] == "ground"][0]["relative_to_reference"]
     assert ground == pytest.approx(truth, rel=0.05)
+
+
+@pytest.mark.slow
+def test_part_ratio_does_not_depend_on_the_start(tmp_path):
+    """From a ground start of kd = 1 (materials.toml) instead of the .mtl's Kd, the same ratio."""
+    ratios = []
+    for k, toml in enumerate(("", "[parts.ground]\nkd = [1.0, 1.0, 1.0]\n")):
+        scene = _copy(SUN, tmp_path / f"s{k}")
+        if toml:
+            (scene / "materials.toml").write_text(toml)
+        r = invoke(scene, "solve", "--reflectance", "lambert")
+        assert r.exit_code == 0, r.output
+        parts = json.loads((scene / "out" / "reflectance.json").read_text())["parts"]
+        ratios.append(np.array([p for p in parts if p["name"] == "ground"][0]["relative_to_reference"]))
+    assert ratios[1] == pytest.approx(ratios[0], rel=0.01)

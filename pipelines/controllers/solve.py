@@ -231,6 +231,45 @@ class _Systems:
                 spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
         return fit_scales(self.albedo, rows, weights, diffuse, spec, self.values[rows])
 
+    def part_leaf_systems(self, tree, material: Material) -> list:
+        """Per part, the leaf-space normal equations of its fit rows (G (3, k, k), h (k, 3), bb (3,))
+        with kd = material.kd x base (the part's factor 1), for `parts.varpro_scales`; None for a part
+        no fit row sees. The sampled route: the fit sample's rows; exact: every fit pixel."""
+        from ..light import haar
+        from ..light.rows import _gram
+
+        a = self.albedo
+        out = []
+        if self.options.exact:
+            from ..light.system import build_normal_equations
+
+            P = haar.leaf_matrix(tree)
+            for q in range(len(a.parts.parts)):
+                use = self.usable & ~self.held & (a.part == q)
+                if not use.any():
+                    out.append(None)
+                    continue
+                part = build_normal_equations(self.vis, self.values, material, use=use, albedo=a.base).fit.project(P)
+                out.append((np.stack([part.gram(c) for c in range(3)]), np.asarray(part.h), part.bb))
+            return out
+        fs = self.fit_sample
+        A = self.fit_rows.diffuse(material).leaf_sums(tree)
+        kd = np.asarray(material.kd, float)[None, :]
+        base, b, part = a.base[fs.rows] * kd, self.values[fs.rows], a.part[fs.rows]
+        sw = np.sqrt(fs.weights)
+        for q in range(len(a.parts.parts)):
+            sel = np.flatnonzero(part == q)
+            if not len(sel):
+                out.append(None)
+                continue
+            G, h = [], []
+            for c in range(3):
+                M = A[sel] * (sw[sel] * base[sel, c]).astype(np.float32)[:, None]
+                G.append(_gram(M))
+                h.append(M.T.astype(np.float64) @ (sw[sel] * b[sel, c]))
+            out.append((np.stack(G), np.column_stack(h), (fs.weights[sel, None] * b[sel] ** 2).sum(axis=0)))
+        return out
+
     def recast(self, backend, texels: np.ndarray):
         """Cast the visibility toward `texels` for every pixel; later systems use it."""
         from ..geometry.visibility import VisibilityData, recast_columns
@@ -406,6 +445,19 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         # light <-> per-part albedo scales: the intermediate lights re-solve the first one's tree
         # (warm started), and steady steps of the log scales jump towards their limit (the light
         # and the scales trade off along a slow direction); the last round refines afresh
+        if getattr(sol, "tree", None) is not None and not m.specular:
+            # a Lambertian light on a tree: the factors with the light re-solved for each (variable
+            # projection on the tree's leaves), then the light refined afresh; once more on its tree
+            from ..model.parts import varpro_scales
+
+            for k in range(2):
+                new = varpro_scales(albedo, systems.part_leaf_systems(sol.tree, m))
+                change = float(np.max(np.abs(new / albedo.scales - 1)))
+                albedo.scales = new
+                sol, ne = solve_light_only(m)
+                if change < 10 * PART_TOL:
+                    break
+            return _parts_done(sol, ne, k)
         history = [np.log(albedo.scales)]
         first = sol
         for k in range(PART_ROUNDS):
@@ -430,6 +482,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                 sol, ne = solve_light_only(m)
             else:
                 sol = quick
+        return _parts_done(sol, ne, k)
+
+    def _parts_done(sol, ne, k):
         part_scales[id(sol)] = albedo.scales.copy()
         names = albedo.parts.names
         progress.note(f"part albedo after {k + 1} round(s) (relative to {names[albedo.parts.reference]}): " + ", ".join(

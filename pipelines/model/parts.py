@@ -531,3 +531,71 @@ def view_albedo(reflectance: dict | None, mesh, mesh_path: Path, scene_dir: Path
         return base * scales[part]
 
     return albedo
+
+
+# -- the per-part factors with the light re-solved: variable projection on a fixed tree -------------
+def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span: float = 2.0,
+                  evaluations: int = 24) -> np.ndarray:
+    """Per-part factors that minimise the photo's residual with the light re-solved for each (a
+    Lambertian light on a fixed set of leaves, >= 0): the variable projection of the bilinear
+    problem, which plain alternation only creeps towards (the light trades a part's colour against
+    the directions that part sees).
+
+    systems : per part q, (G (C, k, k), h (k, C), bb (C,)): the leaf-space normal equations of that
+        part's rows with kd = material.kd x base (factor 1). Channel c's system at factors s is
+        (sum_q s_qc^2 G_qc, sum_q s_qc h_qc), solved by NNLS; each non-reference part's factor is
+        found by golden-section search in log s (per channel for fit "colour", one shared factor
+        for "scale"), part after part, for up to `max_cycles` cycles.
+    """
+    from ..light.nnls import nnls_gram
+
+    scales = albedo.scales.copy()
+    present = [q for q, s in enumerate(systems) if s is not None]
+    C = scales.shape[1]
+    free = [None] * C
+
+    def objective(c: int, s: np.ndarray) -> float:
+        G = sum(s[q, c] ** 2 * systems[q][0][c] for q in present)
+        h = sum(s[q, c] * systems[q][1][:, c] for q in present)
+        bb = sum(systems[q][2][c] for q in present)
+        r = nnls_gram(G, h, initial_free=free[c])
+        free[c] = r.x > 0
+        return float(bb + 2.0 * r.objective)
+
+    def golden(f, x0: float) -> float:
+        lo, hi = x0 - span, x0 + span
+        g = (np.sqrt(5.0) - 1.0) / 2.0
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fb = f(a), f(b)
+        for _ in range(evaluations):
+            if fa < fb:
+                hi, b, fb = b, a, fa
+                a = hi - g * (hi - lo)
+                fa = f(a)
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + g * (hi - lo)
+                fb = f(b)
+        x = 0.5 * (lo + hi)
+        return x if f(x) <= f(x0) else x0
+
+    movable = [q for q in present if albedo.parts.parts[q].fit != "reference"]
+    for _ in range(max_cycles if len(movable) > 1 else 1):
+        before = scales.copy()
+        for q in movable:
+            if albedo.parts.parts[q].fit == "scale":
+                def f(x, q=q):
+                    s = scales.copy()
+                    s[q] = np.exp(x)
+                    return sum(objective(c, s) for c in range(C))
+                scales[q] = np.exp(golden(f, float(np.log(scales[q]).mean())))
+            else:
+                for c in range(C):
+                    def f(x, q=q, c=c):
+                        s = scales.copy()
+                        s[q, c] = np.exp(x)
+                        return objective(c, s)
+                    scales[q, c] = np.exp(golden(f, float(np.log(scales[q, c]))))
+        if np.max(np.abs(scales / before - 1)) < 1e-4:
+            break
+    return scales
