@@ -260,3 +260,23 @@ def test_part_ratio_does_not_depend_on_the_start(tmp_path):
         parts = json.loads((scene / "out" / "reflectance.json").read_text())["parts"]
         ratios.append(np.array([p for p in parts if p["name"] == "ground"][0]["relative_to_reference"]))
     assert ratios[1] == pytest.approx(ratios[0], rel=0.01)
+
+
+def test_downstream_stages_use_the_parts(textured):
+    """relight renders each part with its colour and texture (the photo view: the solve's own relit
+    error), export writes a BSDF per part, the report has the parts' table."""
+    assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert").exit_code == 0
+    solved = json.loads((textured / "out" / "solve_report.json").read_text())["relit"]["relative_rmse_vs_photo"]
+    assert invoke(textured, "relight").exit_code == 0
+    relit = json.loads((textured / "out" / "relight.json").read_text())["relative_rmse_vs_photo"]
+    assert relit == pytest.approx(solved, rel=0.02)
+    (textured / "uniform.json").write_text('{"model": "lambert", "kd": [1, 1, 1]}')
+    assert invoke(textured, "relight", "--material", str(textured / "uniform.json"), "--name", "plain").exit_code == 0
+    plain = json.loads((textured / "out" / "plain.json").read_text())["relative_rmse_vs_photo"]
+    assert plain > 3 * relit  # without the parts' colours the same light is far off
+    assert invoke(textured, "export").exit_code == 0
+    export = json.loads((textured / "out" / "export" / "export.json").read_text())
+    assert {p["name"] for p in export["material"]["parts"]} == {"spot", "ground"}
+    assert (textured / "out" / "export" / "mitsuba" / "bsdf_ground.xml").is_file()
+    assert invoke(textured, "report").exit_code == 0
+    assert "| part | faces | pixels | texture |" in (textured / "out" / "report.md").read_text()
