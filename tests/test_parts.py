@@ -280,3 +280,20 @@ def test_downstream_stages_use_the_parts(textured):
     assert (textured / "out" / "export" / "mitsuba" / "bsdf_ground.xml").is_file()
     assert invoke(textured, "report").exit_code == 0
     assert "| part | faces | pixels | texture |" in (textured / "out" / "report.md").read_text()
+
+
+def test_glb_primitives_materials_and_base_colour_texture(tmp_path):
+    """The same scene as a GLB (trimesh's export): two primitives with their materials, Spot's
+    baseColorTexture embedded, the same texture mean over Spot's surface as the OBJ's map_Kd."""
+    import trimesh
+
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model import parts as pm
+
+    trimesh.load(SUN / "mesh.obj", process=False).export(tmp_path / "mesh.glb")
+    mesh = load_mesh(tmp_path / "mesh.glb")
+    sp = pm.scene_parts(mesh, tmp_path / "mesh.glb", tmp_path)
+    by_name = {p.name: p for p in sp.parts}
+    assert by_name["spot"].texture is not None and by_name["ground"].texture is None
+    assert by_name["ground"].kd == pytest.approx((0.35, 0.45, 0.6), abs=0.003)  # glTF's factor, 8 bits here
+    assert pm.part_mean_base(sp, mesh, sp.names.index("spot")) == pytest.approx([0.7894, 0.6414, 0.5785], rel=0.01)
