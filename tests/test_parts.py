@@ -60,7 +60,7 @@ def test_texture_mip_levels_filter_the_footprint():
 def test_per_row_kd_rows_equal_the_dense_system():
     """RowsPart with kd per row (n, C) builds the same normal equations as the explicit
     T_c = diag(kd_c) D, and the uniform kd still shares one Gram matrix."""
-    from pipelines.light.rows import Pyramid, RowsPart
+    from pipelines.light.rows import RowsPart
 
     rng = np.random.default_rng(1)
     n, N = 50, 12
@@ -68,7 +68,7 @@ def test_per_row_kd_rows_equal_the_dense_system():
     kd = rng.uniform(0.2, 1.0, (n, 3))
     b = rng.uniform(0, 1, (n, 3))
     w = rng.uniform(0.5, 2.0, n)
-    part = RowsPart(Pyramid(D, (N,)) if False else _flat(D), None, kd, np.zeros(3), b, w, n)
+    part = RowsPart(_flat(D), None, kd, np.zeros(3), b, w, n)
     sys_ = part.project(np.eye(N))
     for c in range(3):
         T = kd[:, c:c + 1] * D.astype(np.float64)
@@ -84,7 +84,7 @@ def test_per_row_kd_rows_equal_the_dense_system():
 
 
 def _flat(D):
-    """A Pyramid over one tile of 4 x 4 texels holding D's 12 columns padded to 16."""
+    """D's rows as a Pyramid without tiles (project / predict / gradient read only the rows)."""
     from pipelines.light.rows import Pyramid
 
     p = Pyramid.__new__(Pyramid)
