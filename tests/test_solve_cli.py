@@ -105,7 +105,7 @@ def test_solve_writes_every_output_and_records_them(solved):
     rec = manifest(scene)["stages"]["solve"]
     assert set(rec["outputs"]) == {f"out/{n}" for n in SOLVE_OUTPUTS}
     assert rec["upstream"] == {VIS_STAGE: manifest(scene)["stages"][VIS_STAGE]["key"]}
-    assert set(rec["inputs"]) == {"photo"}
+    assert set(rec["inputs"]) == {"photo", "materials.toml"}  # materials.toml: absent (a new one reruns solve)
     assert rec["input_paths"]["photo"] == "image.exr"
     # previews are real images of the photo's size / the cross layout
     from pipelines.io import images

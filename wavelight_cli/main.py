@@ -530,6 +530,14 @@ def reflectance_options(f):
               help="Light representation: the paper's adaptive Haar wavelets, its quadtree twin, one value per "
                    "texel, spherical harmonics, or a few directional lights.")
 @click.option("--sh-nonnegative", is_flag=True, help="sh: constrain the light to be >= 0 at every texel.")
+@click.option("--single-material", is_flag=True,
+              help="Ignore the mesh's parts (OBJ usemtl groups, glTF materials, materials.toml) and textures: one "
+                   "uniform material for the whole scene.")
+@click.option("--no-texture", is_flag=True,
+              help="Ignore the parts' textures (map_Kd, baseColorTexture) and vertex colours: each part is one "
+                   "fitted colour.")
+@click.option("--texture-colour", is_flag=True,
+              help="Fit an RGB colour per part on top of its texture (default: one grey scale per textured part).")
 @solve_options
 @reflectance_options
 @material_options("solve")
@@ -538,10 +546,12 @@ def reflectance_options(f):
 @force_option
 @views_options
 @click.pass_obj
-def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
+def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, reflectance, max_rounds,
+              min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
     reflectance.json, solve_report.json, ..."""
     from pipelines.controllers.solve import ReflectanceOptions
+    from pipelines.model.parts import PartsOptions
 
     from .stages import solve
 
@@ -554,7 +564,7 @@ def solve_cmd(obj, basis, sh_nonnegative, reflectance, max_rounds, min_specular_
     refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
     opts = _solve_opts(kw, basis, sh_nonnegative)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
-                      refl, given, select)
+                      refl, given, select, PartsOptions(not single_material, not no_texture, texture_colour))
 
 
 @_command("compare")

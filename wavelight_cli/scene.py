@@ -187,7 +187,6 @@ def mesh_coverage(view: View, camera, mesh, backend):
 def load_photo(scene: SceneFiles, camera, linear: bool | None = None):
     """(path, `LoadedImage`) of the scene's photo, checked against the camera's size. NaN/Inf
     pixels that mask.png leaves out are not refused (they read as 0)."""
-    from pipelines.io import images
 
     return load_view_photo(photo_view(scene), camera, linear)
 
@@ -267,3 +266,17 @@ def solved_light(scene: SceneFiles):
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"cannot read the solved light ({str(exc).splitlines()[0]})", path,
                          "rerun wavelight solve --force") from None
+
+
+def scene_albedo(scene: SceneFiles, material_path, mesh, camera, pose):
+    """The per-pixel albedo function of the solve's parts and textures (`model.parts.view_albedo`),
+    when the material is a reflectance.json that lists parts; else None (one uniform material)."""
+    from pipelines.model.parts import view_albedo
+
+    if material_path is None or Path(material_path).suffix.lower() != ".json":
+        return None
+    try:
+        data = json.loads(Path(material_path).read_text())
+    except (OSError, ValueError):
+        return None  # the material reader has already refused a broken file
+    return view_albedo(data if isinstance(data, dict) else None, mesh, scene.mesh, scene.root, camera, pose)

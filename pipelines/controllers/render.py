@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def render_view(vis, light: np.ndarray, material, backend=None) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 3) radiance of every used pixel under a texel light, and the texels cast again."""
+def render_view(vis, light: np.ndarray, material, backend=None, albedo=None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) radiance of every used pixel under a texel light, and the texels cast again; `albedo`:
+    a function (samples -> (P, 3) relative albedo: parts, textures, `model.parts.view_albedo`) or None."""
     from ..geometry.visibility import VisibilityData, recast_columns
     from ..model.render import render
     from .solve import bright_texels
@@ -19,4 +20,4 @@ def render_view(vis, light: np.ndarray, material, backend=None) -> tuple[np.ndar
         if len(recast):
             stored = recast_columns(backend, vis.samples, vis.cube, np.asarray(vis.stored), recast, vis.supersample)
             vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method)
-    return render(vis, light, material), recast
+    return render(vis, light, material, albedo=None if albedo is None else albedo(vis.samples)), recast

@@ -37,6 +37,8 @@ BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared p
 MAX_BRIGHT = 64
 PRECAST_LEVELS = 4  # the coarse light that finds the bright directions before the solve: blocks of <= 4 x 4 texels at R = 32
 MAX_PRECAST = 256  # and at most this many of its texels are cast exactly (a few such blocks)
+PART_ROUNDS = 12  # several parts / textures: light <-> per-part albedo scales, at most this many rounds
+PART_TOL = 1e-3  # ... until no part's scale changes by more than this (relative)
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
               "the albedo (README: Conventions)")
 
@@ -146,10 +148,11 @@ def material_text(m: Material) -> str:
 class _Systems:
     """Builds the light system of a material on the chosen route (dense, or sampled rows)."""
 
-    def __init__(self, vis, values, usable, held, options: SolveOptions, progress: Progress):
+    def __init__(self, vis, values, usable, held, options: SolveOptions, progress: Progress, albedo=None):
         from ..light import sampling
 
         self.vis, self.values, self.usable, self.held = vis, values, usable, held
+        self.albedo = albedo  # model.parts.PixelAlbedo or None (uniform)
         self.options, self.progress = options, progress
         self.sample_info = None
         if options.exact:
@@ -174,13 +177,17 @@ class _Systems:
             self.progress.note(f"normal equations over {int(self.usable.sum())} pixels x {self.vis.cube.n_texels} texels")
             ne = build_normal_equations(self.vis, self.values, material, use=self.usable, held_out=self.held,
                                         progress=lambda done, total: self.progress.advance("normal equations", done,
-                                                                                           total, "pixels"))
+                                                                                           total, "pixels"),
+                                        albedo=None if self.albedo is None else self.albedo.values())
             self.progress.note(f"normal equations in {ne.seconds:.1f} s")
             return ne
         t0 = time.perf_counter()
         fs, hs = self.fit_sample, self.held_sample
-        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows)
-        held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates)
+        a = self.albedo
+        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows,
+                                 None if a is None else a.values(fs.rows))
+        held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates,
+                                   albedo=None if a is None else a.values(hs.rows))
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
 
     def highlight_rows(self, light: np.ndarray, kd, n_fit: int, n_held: int) -> tuple[np.ndarray, np.ndarray]:
@@ -191,6 +198,8 @@ class _Systems:
         fs, hs = self.fit_sample, self.held_sample
         D = self.fit_rows.diffuse().rows
         pred = (D @ np.asarray(light, np.float32)).astype(np.float64) * np.asarray(kd)[None, :]
+        if self.albedo is not None:
+            pred *= self.albedo.values(fs.rows)
         values = self.values[fs.rows]
         excess = (values - pred).sum(axis=1) / np.maximum(values.sum(axis=1), 1e-12)
         top = np.argsort(-excess, kind="stable")[:n_fit // 4]
@@ -214,11 +223,72 @@ class _Systems:
         n = min(EXPLORE_ROWS, len(fs.rows))
         head = TransportRows(self.vis, fs.rows[:n])
         w = fs.weights[:n] * (fs.weights.sum() / max(fs.weights[:n].sum(), 1e-300))
-        fit = head.part(Material(kd=material.kd), self.values[fs.rows[:n]], w, fs.candidates)
+        albedo = None if self.albedo is None else self.albedo.values(fs.rows[:n])
+        fit = head.part(Material(kd=material.kd), self.values[fs.rows[:n]], w, fs.candidates, albedo=albedo)
         fit.precision = "single"
         empty = replace(fit.head(0), n_pixels=0)  # no held-out part: the levels are fixed
         sol = bases.solve(LightSystem(fit, empty, 0.0), self.vis.cube, "wavelet", PRECAST_LEVELS)
         return sol.light
+    def part_scales(self, light: np.ndarray, material: Material) -> np.ndarray:
+        """The per-part albedo scales that fit the photo best under `light` (`parts.fit_scales`), over
+        the rows the light is fitted to (the fit sample; on the exact route every fit pixel)."""
+        from ..model.parts import fit_scales
+        from ..model.render import render
+
+        L = np.asarray(light, np.float64)
+        kd = np.asarray(material.kd, float)[None, :]
+        if self.options.exact:
+            rows = np.flatnonzero(self.usable & ~self.held)
+            weights = np.ones(len(rows))
+            diffuse = render(self.vis, L, replace(material, ks=(0.0, 0.0, 0.0)))[rows]
+            spec = render(self.vis, L, replace(material, kd=(0.0, 0.0, 0.0)))[rows] if material.specular else None
+        else:
+            rows, weights = self.fit_sample.rows, self.fit_sample.weights
+            Lf = L.astype(np.float32)
+            diffuse = kd * (self.fit_rows.diffuse(material).rows @ Lf).astype(np.float64)
+            spec = None
+            if material.specular:
+                spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
+        return fit_scales(self.albedo, rows, weights, diffuse, spec, self.values[rows])
+
+    def part_leaf_systems(self, tree, material: Material) -> list:
+        """Per part, the leaf-space normal equations of its fit rows (G (3, k, k), h (k, 3), bb (3,))
+        with kd = material.kd x base (the part's factor 1), for `parts.varpro_scales`; None for a part
+        no fit row sees. The sampled route: the fit sample's rows; exact: every fit pixel."""
+        from ..light import haar
+        from ..light.rows import _gram
+
+        a = self.albedo
+        out = []
+        if self.options.exact:
+            from ..light.system import build_normal_equations
+
+            P = haar.leaf_matrix(tree)
+            for q in range(len(a.parts.parts)):
+                use = self.usable & ~self.held & (a.part == q)
+                if not use.any():
+                    out.append(None)
+                    continue
+                part = build_normal_equations(self.vis, self.values, material, use=use, albedo=a.base).fit.project(P)
+                out.append((np.stack([part.gram(c) for c in range(3)]), np.asarray(part.h), part.bb))
+            return out
+        fs = self.fit_sample
+        A = self.fit_rows.diffuse(material).leaf_sums(tree)
+        kd = np.asarray(material.kd, float)[None, :]
+        base, b, part = a.base[fs.rows] * kd, self.values[fs.rows], a.part[fs.rows]
+        sw = np.sqrt(fs.weights)
+        for q in range(len(a.parts.parts)):
+            sel = np.flatnonzero(part == q)
+            if not len(sel):
+                out.append(None)
+                continue
+            G, h = [], []
+            for c in range(3):
+                M = A[sel] * (sw[sel] * base[sel, c]).astype(np.float32)[:, None]
+                G.append(_gram(M))
+                h.append(M.T.astype(np.float64) @ (sw[sel] * b[sel, c]))
+            out.append((np.stack(G), np.column_stack(h), (fs.weights[sel, None] * b[sel] ** 2).sum(axis=0)))
+        return out
 
     def recast(self, backend, texels: np.ndarray):
         """Cast the visibility toward `texels` for every pixel; later systems use it."""
@@ -305,6 +375,7 @@ class SolveResult:
     unobservable: np.ndarray
     warnings: list
     report: dict = field(default_factory=dict)
+    albedo: object = None  # model.parts.PixelAlbedo with the fitted per-part scales (None: uniform)
 
 
 BRIGHT_REGION_DEG = 20.0  # the brightest region: texels this close to the brightest one, at least half as bright
@@ -366,7 +437,7 @@ def plastic_starts(start: Material, given: set) -> list[Material]:
 
 def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectance: ReflectanceOptions,
                 given: set | None = None, backend=None, photo_path=None, progress: Progress | None = None,
-                adaptive: bool = False, held_out: np.ndarray | None = None) -> SolveResult:
+                adaptive: bool = False, held_out: np.ndarray | None = None, albedo=None) -> SolveResult:
     """Recover the light and the reflectance from a photo.
 
     vis : the used pixels' visibility (`geometry.visibility.VisibilityData`); `adaptive`: it was
@@ -375,6 +446,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     material : the given material (its kd sets the light's scale; a fit starts from it).
     held_out : (P,) bool, the rows held out for the model choice (default: a hash of the pixel
         positions, `options.held_out` of them).
+    albedo : `model.parts.PixelAlbedo` of the used pixels (several parts, textures), or None (one
+        uniform material). Its per-part scales are fitted with the light (alternating, closed form);
+        the reference part's stays (the light x albedo scale).
     """
     from ..light import bases
     from ..light import solution as ls
@@ -391,7 +465,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     saturated = ~usable
     if saturated.any():
         progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")
-    systems = _Systems(vis, values, usable, held, options, progress)
+    systems = _Systems(vis, values, usable, held, options, progress, albedo)
     light_options = options.light
     precast = np.zeros(0, np.int64)
     if adaptive and backend is not None and not options.exact:
@@ -411,7 +485,62 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         refined["solution"] = sol
         return sol
 
+    part_scales: dict = {}  # id(light solution) -> the per-part scales it was solved with
+
     def solve_light(m: Material):
+        sol, ne = solve_light_only(m)
+        if albedo is None:
+            return sol, ne
+        # light <-> per-part albedo scales: the intermediate lights re-solve the first one's tree
+        # (warm started), and steady steps of the log scales jump towards their limit (the light
+        # and the scales trade off along a slow direction); the last round refines afresh
+        if getattr(sol, "tree", None) is not None and not m.specular:
+            # a Lambertian light on a tree: the factors with the light re-solved for each (variable
+            # projection on the tree's leaves), then the light refined afresh; once more on its tree
+            from ..model.parts import varpro_scales
+
+            for k in range(2):
+                new = varpro_scales(albedo, systems.part_leaf_systems(sol.tree, m))
+                change = float(np.max(np.abs(new / albedo.scales - 1)))
+                albedo.scales = new
+                sol, ne = solve_light_only(m)
+                if change < 10 * PART_TOL:
+                    break
+            return _parts_done(sol, ne, k)
+        history = [np.log(albedo.scales)]
+        first = sol
+        for k in range(PART_ROUNDS):
+            new = systems.part_scales(sol.light, m)
+            change = float(np.max(np.abs(new / albedo.scales - 1)))
+            history.append(np.log(new))
+            if len(history) >= 3:
+                d_prev, d = history[-2] - history[-3], history[-1] - history[-2]
+                denom = float((d_prev * d_prev).sum())
+                rho = float((d * d_prev).sum()) / denom if denom > 0 else 0.0
+                if 0.0 < rho < 1.0:
+                    rho = min(rho, 0.9)
+                    history[-1] = history[-1] + d * rho / (1.0 - rho)
+                    new = np.exp(np.clip(history[-1], -20, 20))
+            albedo.scales = new
+            if change < PART_TOL or k == PART_ROUNDS - 1:
+                sol, ne = solve_light_only(m)
+                break
+            ne = systems.system(m) if not m.specular or options.exact else systems.system(m, ROUND_ROWS)
+            quick = bases.refit(ne, vis.cube, first)
+            if quick is None:
+                sol, ne = solve_light_only(m)
+            else:
+                sol = quick
+        return _parts_done(sol, ne, k)
+
+    def _parts_done(sol, ne, k):
+        part_scales[id(sol)] = albedo.scales.copy()
+        names = albedo.parts.names
+        progress.note(f"part albedo after {k + 1} round(s) (relative to {names[albedo.parts.reference]}): " + ", ".join(
+            f"{n} {' '.join(f'{v:.3g}' for v in albedo.scales[i])}" for i, n in enumerate(names)))
+        return sol, ne
+
+    def solve_light_only(m: Material):
         if not options.exact and m.specular:
             # a reflectance round: the refinement's tree re-solved on a smaller system (the rounds
             # fit a handful of material parameters; the final light is refined on the whole sample).
@@ -430,6 +559,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         h = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
         lm = "" if r.fit is None else f" (LM: {r.fit.evaluations} evaluations, {r.fit.seconds:.1f} s)"
         progress.note(f"reflectance round {r.index}: {material_text(r.material)}{lm}: error {100 * r.fit_rmse:.3f} %{h}")
+
+    def current_albedo():
+        return None if albedo is None else albedo.values()
 
     lm_rows = probe_rows = None
     if not options.exact:  # the LM fits the same pixels the light is fitted to; the probe a few of them
@@ -453,14 +585,16 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                    reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
                                    rows=lm_rows, probe_rows=probe_rows,
                                    plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
-                                   note=progress.note)
+                                   note=progress.note, albedo=current_albedo)
             else:
                 result = rf.alternate(vis, values, start, solve_light, usable, held, material.kd,
-                                      reflectance.max_rounds, progress=on_round, rows=lm_rows)
+                                      reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo)
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None
     material, sol, system = result.material, result.solution, result.context
+    if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
+        albedo.scales = part_scales.get(id(sol), albedo.scales)
     if not options.exact and material.specular and sol is not refined.get("solution"):
         # the rounds re-solved the refinement of an earlier material on a smaller system: refine once
         # more under the chosen one, on the whole sample
@@ -474,7 +608,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                           done=precast)
         recast = np.union1d(precast, more).astype(np.int64)
     observability, unobservable = ls.observability(system)
-    relit = render(systems.vis, sol.light, material)
+    relit = render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
     versus = versus_photo(relit, values, usable)
     warnings = ls.diagnose(system, sol, vis.cube, versus["relative_rmse_vs_photo"])
     n_range = rf.SHININESS_RANGE
@@ -518,4 +652,4 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "seconds": time.monotonic() - t0,
     }
     return SolveResult(material, sol, result, system, systems.vis, relit, versus, observability, unobservable,
-                       warnings, report)
+                       warnings, report, albedo)

@@ -16,6 +16,15 @@ class Mesh:
     faces: np.ndarray  # (F, 3) int64
     vertex_normals: np.ndarray  # (V, 3) float64 unit
     notes: tuple[str, ...] = ()
+    # the parts the file carries (OBJ usemtl groups, glTF primitives' materials): their names, each
+    # face's part index, each face corner's UV (NaN where the part has none) and vertex colour
+    # (linear RGB; None when the file has none); `part_materials`: what the file says of each part
+    # (`parts.FileMaterial`). Empty / None for a file without parts.
+    part_names: tuple[str, ...] = ()
+    face_part: np.ndarray | None = None  # (F,) int32
+    face_uv: np.ndarray | None = None  # (F, 3, 2) float64
+    face_colour: np.ndarray | None = None  # (F, 3, 3) float64
+    part_materials: tuple = ()
 
     @property
     def scale(self) -> float:

@@ -198,6 +198,7 @@ def load_mesh(path: str | Path) -> Mesh:
         raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
                          f" of {len(vertices)}", path, "repair or re-export the mesh")
     normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
+    names, face_part, face_uv, face_colour, materials = _file_parts(parts, faces)
     notes = []
     if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
         with open(path, "rb") as f:
@@ -219,6 +220,10 @@ def load_mesh(path: str | Path) -> Mesh:
     if (duplicate & ~degenerate).any():
         notes.append(f"removed {int((duplicate & ~degenerate).sum())} duplicate faces")
     faces = faces[~drop]
+    if face_part is not None:
+        face_part = face_part[~drop]
+        face_uv = None if face_uv is None else face_uv[~drop]
+        face_colour = None if face_colour is None else face_colour[~drop]
     bad_n = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
     if bad_n.any():
         normals = np.array(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
@@ -230,4 +235,55 @@ def load_mesh(path: str | Path) -> Mesh:
             first[faces[::-1].ravel()] = np.repeat(np.arange(len(faces))[::-1], 3)
             normals[flat] = np.where(first[flat, None] >= 0, fn[first[flat]], [0.0, 0.0, 1.0])
     normals = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
-    return Mesh(vertices, faces, normals, tuple(notes))
+    return Mesh(vertices, faces, normals, tuple(notes), names, face_part, face_uv, face_colour, materials)
+
+
+def _file_parts(parts: list, faces: np.ndarray):
+    """The parts the file carries, from trimesh's geometries (one per OBJ `usemtl` group or glTF
+    primitive): (names, face part index, face-corner UVs, face-corner linear vertex colours, what
+    the file says of each part's material: {"kd", "image", "source"}). All empty / None when the
+    file names no material and has no UVs or vertex colours (one uniform part: today's model)."""
+    from .images import srgb_to_linear
+
+    names: list[str] = []
+    materials: list[dict] = []
+    per_face, uvs, colours = [], [], []
+    any_uv = any_colour = False
+    for k, m in enumerate(parts):
+        visual = getattr(m, "visual", None)
+        mat = getattr(visual, "material", None)
+        name = getattr(mat, "name", None) or m.metadata.get("name") or f"part{k}"
+        info = {"kd": None, "image": None, "source": ""}
+        if mat is not None:
+            if hasattr(mat, "baseColorFactor") or hasattr(mat, "baseColorTexture"):  # glTF PBR
+                f = getattr(mat, "baseColorFactor", None)
+                if f is not None:  # glTF's factor is linear; trimesh may hold it as uint8
+                    f = np.asarray(f)
+                    f = f[:3] / 255.0 if f.dtype.kind in "ui" else f[:3].astype(float)
+                    info["kd"] = tuple(float(v) for v in f)
+                if getattr(mat, "baseColorTexture", None) is not None:
+                    info["image"], info["source"] = mat.baseColorTexture, "glTF baseColorTexture"
+            elif getattr(mat, "image", None) is not None:
+                info["image"], info["source"] = mat.image, "texture"
+        if name not in names:
+            names.append(name)
+            materials.append(info)
+        per_face.append(np.full(len(m.faces), names.index(name), np.int32))
+        uv = getattr(visual, "uv", None)
+        f = np.asarray(m.faces, np.int64)
+        if uv is not None and len(uv) == len(m.vertices):
+            uvs.append(np.asarray(uv, np.float64)[f])
+            any_uv = True
+        else:
+            uvs.append(np.full((len(f), 3, 2), np.nan))
+        vc = getattr(visual, "vertex_colors", None) if getattr(visual, "kind", None) == "vertex" else None
+        if vc is not None and len(vc) == len(m.vertices):
+            colours.append(srgb_to_linear(np.asarray(vc, np.float64)[:, :3] / 255.0)[f])
+            any_colour = True
+        else:
+            colours.append(np.full((len(f), 3, 3), np.nan))
+    named = any(getattr(getattr(getattr(m, "visual", None), "material", None), "name", None) for m in parts)
+    if not (named or any_uv or any_colour):
+        return (), None, None, None, ()
+    return (tuple(names), np.concatenate(per_face), np.concatenate(uvs) if any_uv else None,
+            np.concatenate(colours) if any_colour else None, tuple(materials))

@@ -104,7 +104,8 @@ class RowsPart:
     T_c = kd_c D + ks_c S.
 
     D, S : `Pyramid`s of the diffuse (kd = 1) and specular (ks = 1) transport (S None: Lambertian).
-    kd, ks : (C,) the material per channel.
+    kd, ks : (C,) the material per channel; kd may be (n, C), per row (several parts, textures: the
+        material's kd times each row's relative albedo).
     b : (n, C) photo values; w : (n,) weights (pixels each row stands for).
     n_pixels : the pixels these rows stand for (what the diagnostics count).
     precision : "double" accumulates the projected systems in float64; "single" in float32 (half the
@@ -132,6 +133,8 @@ class RowsPart:
     def channel_scale(self) -> np.ndarray | None:
         """a_c with T_c = a_c T_ref when kd and ks are proportional across channels (else None)."""
         kd, ks = np.asarray(self.kd, float), np.asarray(self.ks, float)
+        if kd.ndim == 2:  # per-row albedo: one Gram matrix per channel
+            return None
         ref = int(np.argmax(kd + ks))
         if kd[ref] + ks[ref] == 0:
             return np.zeros(len(kd))
@@ -143,7 +146,7 @@ class RowsPart:
     def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype) -> np.ndarray:
         """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows."""
         sw = np.sqrt(self.w).astype(dtype)[:, None]
-        A = A_D.astype(dtype) * (sw * dtype(self.kd[c]))
+        A = A_D.astype(dtype) * (sw * self._kd(c).astype(dtype))
         if A_S is not None and self.ks[c] != 0:
             A += A_S.astype(dtype) * (sw * dtype(self.ks[c]))
         return A
@@ -159,11 +162,22 @@ class RowsPart:
             h = (A.T.astype(np.float64) @ (self.b * sw[:, None])) * scale[None, :]
             return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
         G, h = [], []
-        for c in range(len(self.kd)):
+        for c in range(np.shape(self.kd)[-1]):
             A = self._weighted(A_D, A_S, c, dtype)
             G.append(_gram(A))
             h.append(A.T.astype(np.float64) @ (self.b[:, c] * sw))
         return SystemPart(np.stack(G), np.column_stack(h), self.bb, self.n_pixels, None)
+
+    def _kd(self, c: int) -> np.ndarray:
+        """Channel c's kd: a scalar, or (n, 1) per row."""
+        kd = np.asarray(self.kd, np.float64)
+        return kd[..., c][:, None] if kd.ndim == 2 else np.asarray(kd[c])
+
+    @property
+    def _kd_rows(self) -> np.ndarray:
+        """kd as (1, C) or (n, C), to multiply (n, C) radiance."""
+        kd = np.asarray(self.kd, np.float64)
+        return kd if kd.ndim == 2 else kd[None, :]
 
     # -- the part interface (as system.SystemPart) --------------------------------------------------
     def project_tree(self, tree: HaarTree) -> SystemPart:
@@ -174,7 +188,8 @@ class RowsPart:
         the rows are ordered so that every prefix is spread like the whole (`sampling.fit_sample`)."""
         n = min(int(n), self.n_rows)
         factor = self.w.sum() / max(self.w[:n].sum(), 1e-300)
-        return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), self.kd, self.ks, self.b[:n],
+        kd = self.kd[:n] if np.ndim(self.kd) == 2 else self.kd
+        return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), kd, self.ks, self.b[:n],
                         self.w[:n] * factor, self.n_pixels, precision or self.precision)
 
     def project(self, P) -> SystemPart:
@@ -198,7 +213,7 @@ class RowsPart:
         L = np.asarray(light, dtype=np.float64)
         sub = slice(None) if support is None else np.asarray(support, np.int64)
         D = self.D.rows[:, sub]
-        out = np.asarray(self.kd)[None, :] * (D @ L[sub].astype(np.float32)).astype(np.float64)
+        out = self._kd_rows * (D @ L[sub].astype(np.float32)).astype(np.float64)
         if self.S is not None:
             out += np.asarray(self.ks)[None, :] * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
         return out
@@ -213,17 +228,22 @@ class RowsPart:
 
     def gradient(self, light: np.ndarray, support=None) -> np.ndarray:
         """(N, C) T'W(b - T L) at a texel light (`support`: its non-zero texels)."""
-        r = (self.w[:, None] * (self.b - self.predict(light, support))).astype(np.float32)
-        out = np.asarray(self.kd)[None, :] * (self.D.rows.T @ r).astype(np.float64)
+        r = (self.w[:, None] * (self.b - self.predict(light, support)))
+        if np.ndim(self.kd) == 2:  # per row: T_c' r_c = D' (kd_c r_c)
+            out = (self.D.rows.T @ (self.kd * r).astype(np.float32)).astype(np.float64)
+        else:
+            out = np.asarray(self.kd)[None, :] * (self.D.rows.T @ r.astype(np.float32)).astype(np.float64)
+        r = r.astype(np.float32)
         if self.S is not None:
             out += np.asarray(self.ks)[None, :] * (self.S.rows.T @ r).astype(np.float64)
         return out
 
     def channel_diag(self) -> np.ndarray:
         """(C, N) sum_j w_j T_c,ij^2: the squared transport each texel gets, per channel."""
-        C, N = len(self.kd), self.D.rows.shape[1]
+        N = self.D.rows.shape[1]
+        C = np.shape(self.kd)[-1]
         scale = self.channel_scale
-        ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
+        ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks))) if scale is not None else 0
         channels = [ref] if scale is not None else range(C)
         w = self.w.astype(np.float32)
         b = 256
@@ -237,7 +257,8 @@ class RowsPart:
                 sl = slice(a, min(self.n_rows, a + b))
                 t = T[: sl.stop - sl.start]
                 for c in channels:
-                    np.multiply(self.D.rows[sl], np.float32(self.kd[c]), out=t)
+                    kd_c = self._kd(c)
+                    np.multiply(self.D.rows[sl], (kd_c[sl] if kd_c.ndim else kd_c).astype(np.float32), out=t)
                     if self.S is not None and self.ks[c] != 0:
                         t += self.S.rows[sl] * np.float32(self.ks[c])
                     t *= t
@@ -376,13 +397,17 @@ class TransportRows:
         return self._specular[key]
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
-             n_rows: int | None = None) -> RowsPart:
+             n_rows: int | None = None, albedo: np.ndarray | None = None) -> RowsPart:
         """The rows' system under `material` against `photo` ((n, C) values of these rows); with
         `n_rows`, of the first n_rows rows only, standing for the same pixels (weights scaled up, as
-        `RowsPart.head`): a specular round's smaller system builds S for those rows alone."""
+        `RowsPart.head`): a specular round's smaller system builds S for those rows alone. `albedo`:
+        (rows, 3) the rows' relative albedo (kd per row = material.kd x albedo), None: uniform."""
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         w = np.asarray(weights, np.float64)
         D = self.diffuse(material) if n == self.vis.n_pixels else self.diffuse(material).head(n)
         S = self.specular(material, n) if material.specular else None
-        return RowsPart(D, S, np.asarray(material.kd, float), np.asarray(material.ks, float),
+        kd = np.asarray(material.kd, float)
+        if albedo is not None:
+            kd = kd[None, :] * np.asarray(albedo, float)[:n]
+        return RowsPart(D, S, kd, np.asarray(material.ks, float),
                         np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels))

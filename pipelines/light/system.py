@@ -162,7 +162,8 @@ def _symmetrise(G: np.ndarray) -> np.ndarray:
 
 def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Material,
                            use: np.ndarray | None = None, held_out: np.ndarray | None = None,
-                           rows: int = 2048, progress=None, threads: int | None = None) -> LightSystem:
+                           rows: int = 2048, progress=None, threads: int | None = None,
+                           albedo: np.ndarray | None = None) -> LightSystem:
     """Accumulate G, h, b'b for the fit and held-out pixel sets.
 
     Parameters
@@ -173,6 +174,7 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     use : (P,) bool, pixels that may be fitted at all (e.g. not saturated); default all.
     held_out : (P,) bool, pixels kept out of the fit for model selection; default none.
     threads : worker threads (default: the machine's cores, at most 4).
+    albedo : (P, 3) per-pixel relative albedo multiplying kd (several parts, textures); None: uniform.
     """
     t0 = time.perf_counter()
     b = np.asarray(photo, dtype=np.float64)
@@ -182,7 +184,7 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     use = np.ones(P, bool) if use is None else np.asarray(use, bool)
     held_out = np.zeros(P, bool) if held_out is None else np.asarray(held_out, bool)
     N = vis.cube.n_texels
-    scale = _channel_scale(material)
+    scale = _channel_scale(material) if albedo is None else None
     kd, ks = np.asarray(material.kd, np.float32), np.asarray(material.ks, np.float32)
     nG = 1 if scale is not None else 3
     parts = {}
@@ -207,7 +209,8 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
             else:
                 grams, h = [], np.zeros((N, 3))
                 for c in range(3):
-                    T = kd[c] * D[sel] + (ks[c] * S[sel] if S is not None else 0)
+                    k = kd[c] if albedo is None else (kd[c] * albedo[sl][sel, c]).astype(np.float32)[:, None]
+                    T = k * D[sel] + (ks[c] * S[sel] if S is not None else 0)
                     grams.append(_syrk(T))
                     h[:, c] = T.T.astype(np.float64) @ bb[sel, c]
             add[name] = (int(sel.sum()), (bb[sel] ** 2).sum(axis=0), grams, h)

@@ -37,13 +37,15 @@ class Insertion:
 
 def insert(camera: Camera, pose: Pose, scene_mesh: Mesh, obj: Mesh, light: np.ndarray, cube: CubeMap,
            scene_material: Material, obj_material: Material, photo: np.ndarray, make_backend,
-           scene_vis=None, supersample: int = 1, progress=None) -> Insertion:
+           scene_vis=None, supersample: int = 1, progress=None, scene_albedo=None) -> Insertion:
     """Differential rendering of `obj` (world coordinates) into `photo` under `light` (texels of
     `cube`). make_backend(mesh) -> a ray caster (`geometry.raycast.make_backend`).
 
     scene_vis : the photo view's visibility of the scene alone (the cached stage), reused for the
         pixels it has: with the object, a pixel's visibility is the scene's minus the rays the
         object blocks, and only rays toward the object's bounding sphere are cast against it.
+    scene_albedo : the scene's per-pixel relative albedo, a function of pixel samples (its parts and
+        textures: `parts.view_albedo`), or None (one uniform material).
     """
     both = combine(scene_mesh, obj)
     backend_both = make_backend(both)
@@ -64,14 +66,16 @@ def insert(camera: Camera, pose: Pose, scene_mesh: Mesh, obj: Mesh, light: np.nd
         obj_rows = np.flatnonzero(on_object)
         obj_stored = np.asarray(full_with)[obj_rows]
         without_stored = compute_visibility(make_backend(scene_mesh), scene_samples, cube, supersample).stored
+    albedo = None if scene_albedo is None else scene_albedo(scene_samples)
     with_obj = np.zeros((len(samples), 3))
-    with_obj[scene_rows] = render(VisibilityData(scene_samples, cube, supersample, with_stored), light, scene_material)
+    with_obj[scene_rows] = render(VisibilityData(scene_samples, cube, supersample, with_stored), light, scene_material,
+                                  albedo=albedo)
     if len(obj_rows):
         with_obj[obj_rows] = render(VisibilityData(_subset_samples(samples, obj_rows), cube, supersample, obj_stored),
                                     light, obj_material)
     without = np.zeros((len(samples), 3))
     without[scene_rows] = render(VisibilityData(scene_samples, cube, supersample, without_stored), light,
-                                 scene_material)
+                                 scene_material, albedo=albedo)
     img_with = pixels_to_image(with_obj, samples.pixel, H, W)
     img_without = pixels_to_image(without, samples.pixel, H, W)
     object_mask = np.zeros((H, W), bool)

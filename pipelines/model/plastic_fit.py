@@ -111,7 +111,7 @@ class PlasticData:
 
 
 def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
-                 rows=None, weights=None, max_pairs: int = MAX_PAIRS) -> PlasticData:
+                 rows=None, weights=None, max_pairs: int = MAX_PAIRS, albedo=None) -> PlasticData:
     """Precompute the LM's inputs for a light (N, 3), as `reflectance.specular_data` (same
     arguments; `material` gives the IOR and the distribution)."""
     from .reflectance import fit_inputs
@@ -155,6 +155,10 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
         arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
         out += len(r)
     values = np.asarray(photo, np.float64)[rows]
+    if albedo is not None:  # per-pixel relative albedo (parts, textures) under the base
+        a_rows = np.asarray(albedo, np.float64)[rows]
+        Q *= a_rows[:, None, :]
+        lam *= a_rows
     if weights is not None:
         sw = np.sqrt(weights)
         arrays["A"] *= sw.astype(np.float32)[:, None]

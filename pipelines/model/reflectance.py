@@ -159,13 +159,15 @@ def fit_inputs(vis, light, use, held_out, rows, weights, max_pairs: int, cap_giv
 def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, model: str,
                   use: np.ndarray | None = None, held_out: np.ndarray | None = None,
                   max_pairs: int = MAX_PAIRS, rows: np.ndarray | None = None,
-                  weights: np.ndarray | None = None) -> SpecularData:
+                  weights: np.ndarray | None = None, albedo: np.ndarray | None = None) -> SpecularData:
     """Precompute the LM's inputs for a light (N, 3) over the used pixels.
 
     Only texels with light are kept; if pixels x lit texels exceeds `max_pairs`, an evenly spread
     subset of the pixels is used (reported as n_pixels_available vs len(photo)). `rows` (indices
     of used pixels) fixes the pixels instead, each standing for `weights` pixels: the fit then
-    minimises the weighted residual (every term of a row is scaled by sqrt(weight)).
+    minimises the weighted residual (every term of a row is scaled by sqrt(weight)). `albedo`: (P, 3)
+    per-pixel relative albedo (parts, textures): the diffuse shading is albedo x D L, and the fitted
+    kd a colour multiplying it.
     """
     if model not in SPECULAR_MODELS:
         raise ValueError(f"no specular term in model {model!r}; use one of {SPECULAR_MODELS}")
@@ -191,6 +193,8 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
             log_c[k] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
         out += len(r)
     values = np.asarray(photo, np.float64)[rows]
+    if albedo is not None:
+        diffuse *= np.asarray(albedo, np.float64)[rows]
     if weights is not None:
         sw = np.sqrt(weights)
         diffuse *= sw[:, None]
@@ -470,13 +474,13 @@ def lobe_range(model: str) -> tuple[float, float]:
 
 
 def lm_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
-            rows=None, weights=None):
+            rows=None, weights=None, albedo=None):
     """The LM's inputs for `material`'s model under a light (`specular_data`, or `plastic_fit.plastic_data`)."""
     if material.model == PLASTIC:
         from .plastic_fit import plastic_data
 
-        return plastic_data(vis, photo, light, material, use, held_out, rows=rows, weights=weights)
-    return specular_data(vis, photo, light, material.model, use, held_out, rows=rows, weights=weights)
+        return plastic_data(vis, photo, light, material, use, held_out, rows=rows, weights=weights, albedo=albedo)
+    return specular_data(vis, photo, light, material.model, use, held_out, rows=rows, weights=weights, albedo=albedo)
 
 
 def lm_fit(data, start: Material, guard: bool = True) -> "SpecularFit":
@@ -515,13 +519,15 @@ def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
 
 def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
               use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
-              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None, first=None) -> Reflectance:
+              max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None, first=None,
+              albedo=None) -> Reflectance:
     """Light under `start` (or `first`, its (solution, context) already solved) -> LM -> light -> ...
     until a round lowers the all-pixel RMSE by < tol.
 
     The best round (lowest RMSE) is kept; at most `max_rounds` LM fits. `rows`: (pixel indices,
     weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
-    (default: an evenly spread subset of the used pixels, `specular_data`).
+    (default: an evenly spread subset of the used pixels, `specular_data`). `albedo`: None, or a
+    callable giving the current (P, 3) per-pixel relative albedo (the light solve may refit it).
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
@@ -538,7 +544,7 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
     for k in range(1, max_rounds + 1):
         chosen = rows(sol.light, material.kd) if callable(rows) else rows
-        data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen))
+        data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen), albedo=_now(albedo))
         fit = lm_fit(data, material, guard=k == 1)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
@@ -563,6 +569,10 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
                        seconds=time.perf_counter() - t0)
 
 
+def _now(albedo):
+    return albedo() if callable(albedo) else albedo
+
+
 def _rows(rows) -> dict:
     return {} if rows is None else {"rows": rows[0], "weights": rows[1]}
 
@@ -580,7 +590,7 @@ def fixed(material: Material, solve_light: SolveLight, mode: str, decision: str,
 def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
            use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
            min_gain: float = 0.05, max_rounds: int = 8, tol: float = ROUND_TOL, progress=None,
-           rows=None, probe_rows=None, plastic_starts=(), note=None) -> Reflectance:
+           rows=None, probe_rows=None, plastic_starts=(), note=None, albedo=None) -> Reflectance:
     """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
 
     1. Light under Lambert (kd = kd_reference).
@@ -613,7 +623,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         chosen = probe_rows(sol0.light) if callable(probe_rows) else probe_rows
         if chosen is None:
             chosen = rows(sol0.light, start.kd) if callable(rows) else rows
-        data = lm_data(vis, photo, sol0.light, start, use, held_out, **_rows(chosen))
+        data = lm_data(vis, photo, sol0.light, start, use, held_out, **_rows(chosen), albedo=_now(albedo))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
     probe = lm_fit(data, start)
@@ -652,7 +662,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
             ps = replace(ps, kd=material.kd, ks=material.ks, roughness=float(np.clip(alpha0, 0.01, 0.7)))
             name = f"{ps.model}-{ps.distribution}"
             try:
-                pd = lm_data(vis, photo, sol1.light, ps, use, held_out, **_rows(chosen))
+                pd = lm_data(vis, photo, sol1.light, ps, use, held_out, **_rows(chosen), albedo=_now(albedo))
             except FitError:
                 continue
             pp = lm_fit(pd, ps)
@@ -677,7 +687,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         offset = len(rounds)
         shifted = (lambda r, o=offset: progress(replace(r, index=r.index + o))) if progress else None
         spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
-                         rows=rows, first=first)
+                         rows=rows, first=first, albedo=albedo)
         spec.rounds[0].light_seconds = seconds
         best = spec.rounds[spec.chosen_round]
         e = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse

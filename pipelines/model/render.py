@@ -237,8 +237,12 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     return out
 
 
-def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048) -> np.ndarray:
-    """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3)."""
+def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048,
+           albedo: np.ndarray | None = None) -> np.ndarray:
+    """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3).
+
+    `albedo`: (P, 3) a per-pixel relative albedo (several parts, textures: `model.parts`) that
+    multiplies the material's kd pixel by pixel; None: kd alone, uniform."""
     L = np.asarray(light, dtype=np.float64)
     if L.ndim == 1:
         L = np.repeat(L[:, None], 3, axis=1)
@@ -251,7 +255,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     s = vis.samples
     for sl, V in vis.blocks(rows, raw=True):
         D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
-        out[sl] = kd * (D @ Lf)
+        out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
         if S is not None:
             out[sl] += ks * (S @ Lf)
     return out

@@ -11,7 +11,7 @@ from ..console import Console
 from ..outputs import write_json
 from ..scene import SceneFiles, material_from_options, require, solved_light
 
-VERSION = 4  # 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py;
+VERSION = 5  # 5: mitsuba/bsdf_<part>.xml per part (reflectance.json parts); 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py;
 # 4: the fitted material too: mitsuba/bsdf.xml, blender/material.json + setup_material.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
@@ -76,6 +76,7 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                     with atomic_output(bsdf) as tmp:
                         tmp.write_text(ex.mitsuba_bsdf_xml(material))
                     outputs.append(bsdf)
+                    outputs += _part_bsdfs(out / "mitsuba", material, material_path, summary)
             if "blender" in formats:
                 outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
                 script = out / "blender" / "setup_world.py"
@@ -91,6 +92,7 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
             if "opengl" in formats:
                 for name, face in ex.to_gl_faces(texels, cube).items():
                     outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
+            parts = summary.pop("parts", None)
             if mapping is not None:
                 summary["material"] = {
                     "source": cache.relative(material_path), "model": material.model,
@@ -104,6 +106,8 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                         "files": ["blender/material.json", "blender/setup_material.py"], "exact": mapping["blender_exact"],
                         "what": "a Principled BSDF: its inputs and the settings in words (material.json); "
                                 "setup_material.py makes it on the active object"}
+                if parts:
+                    summary["material"]["parts"] = parts
             else:
                 summary["material"] = {"source": None, "note": "no material: run wavelight solve (out/reflectance.json) "
                                                                "or pass --material to export one"}
@@ -127,3 +131,40 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
     if "line" in rec.get("summary", {}):
         console.result(rec["summary"]["line"])
     return d
+
+
+def _part_bsdfs(folder: Path, material, material_path, summary: dict) -> list[Path]:
+    """One Mitsuba BSDF per part (mitsuba/bsdf_<part>.xml) when the material is a reflectance.json
+    with parts: the scene's model with the part's kd. A textured part's file holds its mean kd and
+    names its texture and fitted scale in a comment (Mitsuba's bitmap x that scale is the exact one;
+    not written here). Records the parts in summary["parts"]."""
+    import json
+    import re
+    from dataclasses import replace
+
+    from pipelines.io import exports as ex
+    from pipelines.io.files import atomic_output
+
+    try:
+        refl = json.loads(Path(material_path).read_text()) if material_path is not None else {}
+    except (OSError, ValueError):
+        refl = {}
+    parts = refl.get("parts") if isinstance(refl, dict) else None
+    if not parts:
+        return []
+    written, listed = [], []
+    for p in parts:
+        kd = tuple(min(float(v), 1.0) for v in p["kd"])
+        xml = ex.mitsuba_bsdf_xml(replace(material, kd=kd))
+        note = (f"<!-- part {p['name']}: kd = mean over its surface"
+                + (f"; exactly: texture {p['texture']} (sRGB bitmap) x scale {p['scale']}" if p.get("texture") else "")
+                + " -->\n")
+        xml = xml.replace("?>\n", "?>\n" + note, 1) if xml.startswith("<?xml") else note + xml
+        path = folder / f"bsdf_{re.sub(r'[^A-Za-z0-9_.-]', '_', p['name'])}.xml"
+        with atomic_output(path) as tmp:
+            tmp.write_text(xml)
+        written.append(path)
+        listed.append({"name": p["name"], "file": f"mitsuba/{path.name}", "kd": list(kd), "texture": p.get("texture"),
+                       "scale": p.get("scale"), "exact": not p.get("texture")})
+    summary["parts"] = listed
+    return written

@@ -14,10 +14,10 @@ from pipelines.errors import InputError, OptionError
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import photo_exposure, write_heat_png, write_json
-from ..scene import SceneFiles, load_photo, material_from_options, require, solved_light
+from ..scene import SceneFiles, load_photo, material_from_options, require, scene_albedo, solved_light
 from .visibility import visibility_stage
 
-VERSION = 3  # 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
+VERSION = 4  # 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
 SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
 
 
@@ -57,6 +57,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     from pipelines.io.scene_files import load_mesh, read_camera, read_pose
     from pipelines.light import cubemap
     from pipelines.model import insert as ins
+    from pipelines.model.parts import parts_files
 
     opts.check()
     camera = read_camera(require(scene.camera, "write camera.json or run wavelight calibrate"))
@@ -86,7 +87,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
         if opts.light is None:
             upstream["solve"] = cache.key_of("solve") or "none"
         inputs = {"object": obj_path, "light": light_source, "material": material_path,
-                  "object_material": opts.object_material}
+                  "object_material": opts.object_material, **parts_files(scene.mesh, scene.root)}
         params = {"object": "sphere" if obj_path is None else "file", "at": list(opts.at), "scale": opts.scale,
                   "rotate_z": opts.rotate_z, "radius": opts.radius, "object_kd": opts.object_kd,
                   "resolution": resolution, "supersample": opts.supersample, "material": material.to_json(),
@@ -114,7 +115,8 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
                 task.update(done)
 
             r = ins.insert(camera, pose, mesh, obj, light, cube, material, obj_material, photo.pixels,
-                           lambda m: raycast.make_backend(m), scene_vis, opts.supersample, progress)
+                           lambda m: raycast.make_backend(m), scene_vis, opts.supersample, progress,
+                           scene_albedo(scene, material_path, mesh, camera, pose))
             task.close()
             if not r.object_mask.any():
                 raise InputError(f"the object at {tuple(opts.at)} is not in the photo", None,

@@ -15,10 +15,11 @@ from pipelines.errors import InputError, OptionError
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
-from ..scene import SceneFiles, load_photo, mesh_coverage, other_view, photo_view, require, solved_light
+from ..scene import (SceneFiles, load_photo, mesh_coverage, other_view, photo_view, require, scene_albedo,
+                     solved_light)
 from .visibility import visibility_stage
 
-VERSION = 3  # 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
+VERSION = 4  # 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
 
 @dataclass(frozen=True)
@@ -74,8 +75,9 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
     from pipelines.controllers.render import render_view
     from pipelines.geometry import raycast
     from pipelines.io import images, visibility_file
-    from pipelines.io.scene_files import load_mesh, read_camera
+    from pipelines.io.scene_files import load_mesh, read_camera, read_pose
     from pipelines.metrics import versus_photo
+    from pipelines.model.parts import parts_files
 
     opts.check()
     if opts.light is not None:
@@ -105,7 +107,8 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             upstream["solve"] = cache.key_of("solve") or "none"
         inputs = {"light": opts.light if opts.light is not None else scene.out / "coefficients.h5",
                   "material": material_path, "reference": reference, "reference_mask": mask_path,
-                  "photo": scene.image}  # the PNG's backdrop and exposure
+                  "photo": scene.image,  # the PNG's backdrop and exposure
+                  **parts_files(scene.mesh, scene.root)}  # the parts' materials and textures
         params = {"rotate": opts.rotate, "light_exposure": opts.light_exposure, "material": material.to_json(),
                   "view": view.name}
         stage = Stage(name, VERSION, params, inputs, upstream, {"exposure": opts.exposure})
@@ -127,8 +130,10 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
                                          f"{camera.width}x{camera.height}", mask_path, "use a mask of the view's size")
             data = visibility_file.read_visibility(vis.path)
             light, source = _light(scene, opts, data.cube)
-            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend)
-            values, _ = render_view(data, light, material, backend)
+            mesh = load_mesh(scene.mesh)
+            backend = raycast.make_backend(mesh, vis_opts.backend)
+            values, _ = render_view(data, light, material, backend,
+                                    scene_albedo(scene, material_path, mesh, camera, read_pose(view.pose)))
             backdrop, scale_ref = _display_photos(scene, opts, camera, ref if ref_path == scene.image else None)
             outputs = write_view(out, opts.name, values, data.samples.pixel, (camera.height, camera.width), backdrop,
                                  opts.exposure, scale_ref, mesh_coverage(view, camera, backend.mesh, backend))

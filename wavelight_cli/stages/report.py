@@ -267,6 +267,20 @@ def _levels(doc: Doc, solve: dict, made: dict):
              for lv in solve.get("solution", {}).get("levels", [])], "rrrrrr")
 
 
+def _parts_table(s: Section, refl: dict):
+    """One row per part of the scene (reflectance.json's `parts`)."""
+    def rgb(v):
+        return " ".join(f"{x:.3g}" for x in v) if v else "–"
+
+    ref = (refl.get("reference_part") or {}).get("name")
+    s.p(f"Parts: one {refl.get('model')} model for the scene, a diffuse colour per part (kd: the mean over the "
+        f"part's surface). The reference part **{ref}** keeps its start colour; light × albedo is known only as a "
+        "product, so what the photo tells is each part's albedo relative to it.")
+    s.table(["part", "faces", "pixels", "texture", "fit", "kd (mean)", "scale", "relative to reference"],
+            [[p["name"], str(p["faces"]), str(p["pixels"]), p["texture"] or "–", p["fit"], rgb(p["kd"]),
+              rgb(p["scale"]), rgb(p["relative_to_reference"])] for p in refl["parts"]], "lrrllrrr")
+
+
 def _reflectance(doc: Doc, refl: dict, made: dict):
     s = doc.section("reflectance", "Reflectance")
     if not refl:
@@ -276,6 +290,8 @@ def _reflectance(doc: Doc, refl: dict, made: dict):
             if refl.get("model") == "plastic" else f"n {refl.get('n')}")
     s.p(f"Model **{refl.get('model')}**: kd {refl.get('kd')}, ks {refl.get('ks')}, {lobe}, "
         f"ks/kd {refl.get('ks_over_kd')}. Decision: {refl.get('decision', '–')}.")
+    if refl.get("parts"):
+        _parts_table(s, refl)
     rounds = figs.reflectance_rounds(refl)
     probe = figs.probe_result(refl)
     probe_text = ""

@@ -25,13 +25,14 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_views
 from .visibility import visibility_stage
 
-VERSION = 8  # 8: several views (views/NAME) under one light, their rows together; whole-view hold-out from 3
+VERSION = 9  # 9: parts and textures (per-pixel albedo, per-part scales; materials.toml); 8: several views (views/NAME) under one light, their rows together; whole-view hold-out from 3
 #   views; per-view results (solve_report.json "views", out/views/NAME/)
 # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
-#   (candidates, decision), plastic fields in reflectance.json
+#   (candidates, decision), plastic fields in reflectance.json; 8: several parts and textures (the mesh's
+#   materials, materials.toml: per-part kd fitted with the light), reflectance.json's `parts`
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
@@ -71,7 +72,7 @@ def _inputs(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions):
 def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptions, material, exposure,
                 console: Console, force: bool = False, lock_wait: float = 600.0,
                 refl: ReflectanceOptions = ReflectanceOptions("given"), given: set | None = None,
-                select: str | None = None):
+                select: str | None = None, parts=None):
     """Recover the light (and the reflectance, by `refl`) from the scene's photos (`select`: a
     comma-separated subset of the views, default all); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
@@ -79,8 +80,10 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines.io import light_file, visibility_file
     from pipelines.io.scene_files import load_mesh, read_camera
     from pipelines.geometry import raycast
+    from pipelines.model.parts import PartsOptions, parts_files
 
     given = given or set()
+    parts = parts or PartsOptions()
     with option_errors():  # --reflectance and the fit's start (--shininess)
         refl.check()
         start = refl.start(material, given) if refl.fits else None
@@ -89,16 +92,19 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
               "views": [v.label for v in views]}
     if start is not None:
         params["start"] = start.to_json()
+    params["parts"] = parts.cache_params()
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
     cameras, photos = [camera], [(photo_path, photo)]
     for v in views[1:]:
         cameras.append(read_camera(require(v.camera, "write the view's camera.json (or the scene's shared one)")))
         photos.append(load_view_photo(v, cameras[-1], True if opts.linear_input else None))
+    part_inputs = parts_files(scene.mesh, scene.root) if parts.parts else {}
     cache = SceneCache(scene.root)
     out = scene.out
     with cache.lock(lock_wait, console.say):
         vis_runs = [visibility_stage(scene, vis_opts, console, lock_wait=lock_wait, view=v) for v in views]
         inputs = {("photo" if v.label == MAIN_VIEW else f"photo:{v.label}"): p for v, (p, _) in zip(views, photos)}
+        inputs.update(part_inputs)
         stage = Stage("solve", VERSION, params, inputs, {r.stage: r.key for r in vis_runs}, {"exposure": exposure})
 
         def work(d) -> Ran:
@@ -108,11 +114,12 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             stacked = mv.stacked_photo([ph for _, ph in photos], layout)
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
             mesh = load_mesh(scene.mesh)
+            albedo = _pixel_albedo(scene, mesh, data, views, cameras, layout, parts, console) if parts.parts else None
             backend = raycast.make_backend(mesh, vis_opts.backend)
             result = ctl.solve_scene(data, stacked, material, opts, refl, given,
                                      backend if data.method == "adaptive" else None, photo_path,
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive",
-                                     held_out=held)
+                                     held_out=held, albedo=albedo)
             m, sol, cube = result.material, result.solution, data.cube
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
             outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
@@ -138,11 +145,22 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 if by_view is not None:
                     top = max(float(resp.sum(axis=0).max(initial=0.0)), 1e-300)
                     outputs.append(write_cross_heat_png(vdir / "observability_view.png", np.sqrt(resp[k] / top), cube,
-                                                        1.0, f"this view's pixels alone (kd = 1), on the scale of "
+                                                        1.0, "this view's pixels alone (kd = 1), on the scale of "
                                                         "all views together; black = unobservable",
                                                         "fraction of the best of all views"))
             reflectance = {"format": "wavelight-reflectance-1", **result.reflectance.summary(),
                            "scale_ambiguity": ctl.SCALE_NOTE}
+            if albedo is not None:
+                from pipelines.model.parts import parts_summary
+
+                sp = albedo.parts
+                reflectance["parts"] = parts_summary(albedo, mesh, m.kd)
+                reflectance["parts_options"] = parts.cache_params()
+                reflectance["reference_part"] = {"name": sp.names[sp.reference], "chosen_by": sp.reference_source}
+                reflectance["scale_ambiguity"] = (
+                    f"light x albedo is only known as a product: the reference part {sp.names[sp.reference]!r} keeps "
+                    "its start colour (its texture or .mtl Kd, times kd), the light takes the rest; the other parts' "
+                    "albedo relative to it (relative_to_reference) is what the photo tells")
             outputs.append(write_json(out / "reflectance.json", reflectance))
             report = {"format": "wavelight-solve-report-1", "scene": str(scene.root), "photo": photo_path.name,
                       "basis": sol.basis,
@@ -216,6 +234,30 @@ def _view_lines(report: dict) -> list[str]:
     lines.append(f"solve: all views: {u['unobservable']} unobservable and {u['weakly_observed']} weakly observed "
                  f"(< {obs['weak_threshold']:g}) of {obs['texels']} texels")
     return lines
+def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, console: Console):
+    """The used pixels' known relative albedo from the mesh's parts and textures (None: one uniform
+    material), each pixel's texture lookup filtered to its footprint in its own view's camera
+    (`model.parts`)."""
+    from pipelines.controllers.views import subset
+    from pipelines.io.scene_files import read_pose
+    from pipelines.model import parts as pm
+
+    sp = pm.scene_parts(mesh, scene.mesh, scene.root, parts.texture, parts.texture_colour)
+    if sp is None:
+        return None
+    s = data.samples
+    footprint = np.empty(data.n_pixels)
+    for k, (v, cam) in enumerate(zip(views, cameras)):
+        sl = layout.rows(k)
+        footprint[sl] = pm.pixel_footprint(subset(data, np.arange(sl.start, sl.stop)).samples, cam, read_pose(v.pose))
+    base, part = pm.pixel_base(sp, mesh, s.face, s.position, footprint)
+    pm.choose_reference(sp, part)
+    seen = np.bincount(part, minlength=len(sp.parts))
+    console.say("solve: parts: " + ", ".join(
+        f"{p.name} ({p.faces} faces, {int(seen[k])} pixels, "
+        f"{'texture ' + Path(p.texture.path).name if p.texture is not None else 'vertex colours' if p.vertex_colours else 'kd'}"
+        f"{', reference' if k == sp.reference else ''})" for k, p in enumerate(sp.parts)))
+    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp)
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:

@@ -1,0 +1,299 @@
+"""Several materials and known albedo textures (issue 19, items 1, 2, 4): the parts the mesh carries,
+the per-pixel albedo through the one forward model and both light routes, the per-part fit, the
+errors, and the acceptance numbers on the Mitsuba scenes spot_textured_sun / spot_textured_overcast.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import invoke
+
+REPO = Path(__file__).resolve().parents[1]
+SCENES = REPO / "tests" / "data" / "scenes"
+SUN = SCENES / "spot_textured_sun"
+OVERCAST = SCENES / "spot_textured_overcast"
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("truth", "views", ".wavelight", "out", "image.png"))
+    return dst
+
+
+# -- the parts of a mesh --------------------------------------------------------------------------
+def test_obj_parts_by_name_texture_and_mean():
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model import parts as pm
+
+    mesh = load_mesh(SUN / "mesh.obj")
+    sp = pm.scene_parts(mesh, SUN / "mesh.obj", SUN)
+    by_name = {p.name: p for p in sp.parts}
+    assert set(by_name) == {"spot", "ground"}
+    assert by_name["spot"].faces == 5856 and by_name["ground"].faces == 20000
+    assert by_name["spot"].texture is not None and by_name["ground"].texture is None
+    assert by_name["ground"].kd == pytest.approx((0.35, 0.45, 0.6))
+    # the texture's area-weighted mean over Spot's surface: README.txt's (0.7894, 0.6414, 0.5785)
+    mean = pm.part_mean_base(sp, mesh, sp.names.index("spot"))
+    assert mean == pytest.approx([0.7894, 0.6414, 0.5785], rel=0.01)
+
+
+def test_texture_mip_levels_filter_the_footprint():
+    from pipelines.model.parts import Texture
+
+    checker = np.indices((64, 64)).sum(axis=0) % 2  # one-texel checkerboard
+    tex = Texture.from_pixels(np.repeat(checker[..., None], 3, axis=2).astype(np.float32), "checker")
+    uv = np.random.default_rng(0).uniform(0.1, 0.9, (200, 2))
+    fine = tex.sample(uv, np.full(200, 1.0))  # one texel per pixel: the texels themselves (bilinear)
+    coarse = tex.sample(uv, np.full(200, 16.0 ** 2))  # 16 x 16 texels per pixel: their mean
+    assert fine.std() > 0.1
+    assert np.abs(coarse - 0.5).max() < 1e-6
+
+
+def test_per_row_kd_rows_equal_the_dense_system():
+    """RowsPart with kd per row (n, C) builds the same normal equations as the explicit
+    T_c = diag(kd_c) D, and the uniform kd still shares one Gram matrix."""
+    from pipelines.light.rows import RowsPart
+
+    rng = np.random.default_rng(1)
+    n, N = 50, 12
+    D = rng.uniform(0, 1, (n, N)).astype(np.float32)
+    kd = rng.uniform(0.2, 1.0, (n, 3))
+    b = rng.uniform(0, 1, (n, 3))
+    w = rng.uniform(0.5, 2.0, n)
+    part = RowsPart(_flat(D), None, kd, np.zeros(3), b, w, n)
+    sys_ = part.project(np.eye(N))
+    for c in range(3):
+        T = kd[:, c:c + 1] * D.astype(np.float64)
+        assert np.allclose(sys_.gram(c), T.T @ (w[:, None] * T), rtol=1e-5)
+        assert np.allclose(sys_.h[:, c], T.T @ (w * b[:, c]), rtol=1e-5)
+    L = rng.uniform(0, 1, (N, 3))
+    pred = np.column_stack([(kd[:, c:c + 1] * D) @ L[:, c] for c in range(3)])
+    assert np.allclose(part.predict(L), pred, rtol=1e-5)
+    g = np.column_stack([(kd[:, c:c + 1] * D).T @ (w * (b[:, c] - pred[:, c])) for c in range(3)])
+    assert np.allclose(part.gradient(L), g, rtol=1e-4, atol=1e-6)
+    uniform = RowsPart(_flat(D), None, np.array([0.5, 0.5, 0.5]), np.zeros(3), b, w, n)
+    assert uniform.channel_scale is not None and part.channel_scale is None
+
+
+def _flat(D):
+    """D's rows as a Pyramid without tiles (project / predict / gradient read only the rows)."""
+    from pipelines.light.rows import Pyramid
+
+    p = Pyramid.__new__(Pyramid)
+    p.rows, p.tile_sizes, p.levels, p.offsets = D, (), [], []
+    return p
+
+
+def test_fit_scales_recovers_part_ratio():
+    """Given the light, the closed-form per-part fit recovers the non-reference part's colour,
+    also when the light is off by a per-channel factor (taken from the reference part's pixels)."""
+    from pipelines.model.parts import Part, PixelAlbedo, SceneParts, fit_scales
+
+    rng = np.random.default_rng(2)
+    n = 400
+    part = (np.arange(n) % 3 == 0).astype(np.int64)  # part 1 = reference
+    base = rng.uniform(0.3, 1.0, (n, 3))
+    diffuse = rng.uniform(0.1, 1.0, (n, 3))
+    true = np.array([[0.4, 0.6, 1.1], [1.0, 1.0, 1.0]])
+    light_factor = np.array([1.3, 0.8, 1.0])  # the photo is brighter / darker per channel than the light says
+    photo = base * true[part] * diffuse * light_factor
+    sp = SceneParts([Part("ground", (1, 1, 1), ""), Part("spot", (1, 1, 1), "", fit="reference")], part, None, None,
+                    1, [])
+    a = PixelAlbedo(base, part, np.ones((2, 3)), sp)
+    new = fit_scales(a, np.arange(n), np.ones(n), diffuse, None, photo)
+    assert new[1] == pytest.approx([1, 1, 1])
+    assert new[0] == pytest.approx(true[0], rel=1e-9)
+
+
+# -- errors ---------------------------------------------------------------------------------------
+def _error_line(result) -> str:
+    lines = [ln for ln in result.output.splitlines() if ln.startswith("Error:")]
+    assert result.exit_code == 1, result.output
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    return lines[0]
+
+
+def _untouched(scene: Path):
+    assert not (scene / "out" / "reflectance.json").exists()
+    manifest = scene / ".wavelight" / "manifest.json"
+    assert not manifest.exists() or "solve" not in json.loads(manifest.read_text()).get("stages", {})
+
+
+@pytest.fixture
+def textured(tmp_path):
+    return _copy(SUN, tmp_path / "scene")
+
+
+def test_missing_texture_is_one_line(textured):
+    (textured / "spot_texture.png").rename(textured / "elsewhere.png")
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "mesh.mtl" in line and "spot_texture.png" in line and "does not exist" in line and "--no-texture" in line
+    _untouched(textured)
+    # --no-texture solves it (the part keeps its .mtl Kd)
+    assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert", "--no-texture").exit_code == 0
+
+
+def test_unreadable_texture_is_one_line(textured):
+    (textured / "spot_texture.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "spot_texture.png" in line and "cannot read its texture" in line
+    _untouched(textured)
+
+
+def _rewrite_obj(scene: Path, fn):
+    obj = scene / "mesh.obj"
+    obj.write_text("".join(fn(line) for line in obj.read_text().splitlines(keepends=True)))
+
+
+def test_uvs_far_outside_the_texture_are_one_line(textured):
+    def scale_vt(line):
+        if line.startswith("vt "):
+            u, v = (float(x) for x in line.split()[1:3])
+            return f"vt {10 * u:.6f} {10 * v:.6f}\n"
+        return line
+
+    _rewrite_obj(textured, scale_vt)
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "mesh.obj" in line and "part 'spot'" in line and "far outside the texture" in line
+    _untouched(textured)
+
+
+def test_textured_part_without_uvs_is_one_line(textured):
+    def drop_vt(line):
+        if line.startswith("f "):
+            return "f " + " ".join(re.sub(r"^(\d+)/\d*/(\d+)$", r"\1//\2", t) for t in line.split()[1:]) + "\n"
+        return "" if line.startswith("vt ") else line
+
+    _rewrite_obj(textured, drop_vt)
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "mesh.obj" in line and "no UV coordinates" in line
+    _untouched(textured)
+
+
+def test_materials_toml_unknown_part_is_one_line(textured):
+    (textured / "materials.toml").write_text('[parts.table]\nkd = [0.5, 0.5, 0.5]\n')
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "materials.toml" in line and "table" in line
+
+
+def test_cache_follows_the_mtl_and_texture(textured):
+    assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert").exit_code == 0
+    again = invoke(textured, "solve", "-R", "8", "--reflectance", "lambert")
+    assert "solve: skipped" in again.output
+    mtl = textured / "mesh.mtl"
+    mtl.write_text(mtl.read_text().replace("Kd 0.350000 0.450000 0.600000", "Kd 0.300000 0.450000 0.600000"))
+    changed = invoke(textured, "solve", "-R", "8", "--reflectance", "lambert")
+    assert "solve: running (input changed: mtl" in changed.output, changed.output
+    refl = json.loads((textured / "out" / "reflectance.json").read_text())
+    assert {p["name"] for p in refl["parts"]} == {"spot", "ground"}
+    assert refl["reference_part"]["name"] == "spot"
+
+
+# -- the routes agree -----------------------------------------------------------------------------
+@pytest.mark.slow
+def test_exact_and_sampled_routes_agree_on_parts(tmp_path):
+    """The dense reference route (--exact) and the sampled default fit the same part ratio and the
+    same relit error (R = 8), from a ground start of kd 1 (materials.toml)."""
+    out = {}
+    for route in ("sampled", "exact"):
+        scene = _copy(SUN, tmp_path / route)
+        (scene / "materials.toml").write_text("[parts.ground]\nkd = [1.0, 1.0, 1.0]\n")
+        args = ["solve", "-R", "8", "--reflectance", "lambert"] + (["--exact"] if route == "exact" else [])
+        r = invoke(scene, *args)
+        assert r.exit_code == 0, r.output
+        refl = json.loads((scene / "out" / "reflectance.json").read_text())
+        rep = json.loads((scene / "out" / "solve_report.json").read_text())
+        ground = [p for p in refl["parts"] if p["name"] == "ground"][0]
+        out[route] = (np.array(ground["relative_to_reference"]), rep["relit"]["relative_rmse_vs_photo"])
+    assert out["sampled"][0] == pytest.approx(out["exact"][0], rel=0.03)
+    assert out["sampled"][1] == pytest.approx(out["exact"][1], rel=0.1)
+
+
+# -- acceptance on the Mitsuba scenes ---------------------------------------------------------------
+def _solve_and_measure(src: Path, scene: Path, *options) -> dict:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_e2e import probe_errors
+
+    base = [sys.executable, "-c", "import sys; from wavelight_cli.main import cli; sys.exit(cli())", "-q", "-s",
+            str(scene)]
+    subprocess.run(base + ["solve", *options], check=True, capture_output=True, cwd=REPO)
+    nv = src / "truth" / "novel_view"
+    subprocess.run(base + ["relight", "--view", str(nv / "pose.json"), "--view-camera", str(nv / "camera.json"),
+                           "--reference", str(nv / "image.exr"), "--reference-mask", str(nv / "mask.png"),
+                           "--name", "novel"], check=True, capture_output=True, cwd=REPO)
+    refl = json.loads((scene / "out" / "reflectance.json").read_text())
+    return {"probe": probe_errors(scene / "out" / "coefficients.h5", src)["diffuse"],
+            "novel": json.loads((scene / "out" / "novel.json").read_text())["relative_rmse_vs_photo"],
+            "parts": refl.get("parts")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("src", [SUN, OVERCAST], ids=["sun", "overcast"])
+def test_parts_and_texture_beat_the_uniform_model(tmp_path, src):
+    uniform = _solve_and_measure(src, _copy(src, tmp_path / "uniform"), "--single-material")
+    parts = _solve_and_measure(src, _copy(src, tmp_path / "parts"))
+    assert parts["probe"] <= 0.03 and parts["novel"] <= 0.04, parts
+    assert 2 * parts["probe"] <= uniform["probe"] and 2 * parts["novel"] <= uniform["novel"], (parts, uniform)
+    truth = json.loads((src / "truth" / "material.json").read_text())["ground_over_spot_albedo_rgb"]
+    ground = [p for p in parts["parts"] if p["name"] == "ground"][0]["relative_to_reference"]
+    assert ground == pytest.approx(truth, rel=0.05)
+
+
+@pytest.mark.slow
+def test_part_ratio_does_not_depend_on_the_start(tmp_path):
+    """From a ground start of kd = 1 (materials.toml) instead of the .mtl's Kd, the same ratio."""
+    ratios = []
+    for k, toml in enumerate(("", "[parts.ground]\nkd = [1.0, 1.0, 1.0]\n")):
+        scene = _copy(SUN, tmp_path / f"s{k}")
+        if toml:
+            (scene / "materials.toml").write_text(toml)
+        r = invoke(scene, "solve", "--reflectance", "lambert")
+        assert r.exit_code == 0, r.output
+        parts = json.loads((scene / "out" / "reflectance.json").read_text())["parts"]
+        ratios.append(np.array([p for p in parts if p["name"] == "ground"][0]["relative_to_reference"]))
+    assert ratios[1] == pytest.approx(ratios[0], rel=0.01)
+
+
+def test_downstream_stages_use_the_parts(textured):
+    """relight renders each part with its colour and texture (the photo view: the solve's own relit
+    error), export writes a BSDF per part, the report has the parts' table."""
+    assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert").exit_code == 0
+    solved = json.loads((textured / "out" / "solve_report.json").read_text())["relit"]["relative_rmse_vs_photo"]
+    assert invoke(textured, "relight").exit_code == 0
+    relit = json.loads((textured / "out" / "relight.json").read_text())["relative_rmse_vs_photo"]
+    assert relit == pytest.approx(solved, rel=0.02)
+    (textured / "uniform.json").write_text('{"model": "lambert", "kd": [1, 1, 1]}')
+    assert invoke(textured, "relight", "--material", str(textured / "uniform.json"), "--name", "plain").exit_code == 0
+    plain = json.loads((textured / "out" / "plain.json").read_text())["relative_rmse_vs_photo"]
+    assert plain > 3 * relit  # without the parts' colours the same light is far off
+    assert invoke(textured, "export").exit_code == 0
+    export = json.loads((textured / "out" / "export" / "export.json").read_text())
+    assert {p["name"] for p in export["material"]["parts"]} == {"spot", "ground"}
+    assert (textured / "out" / "export" / "mitsuba" / "bsdf_ground.xml").is_file()
+    assert invoke(textured, "report").exit_code == 0
+    assert "| part | faces | pixels | texture |" in (textured / "out" / "report.md").read_text()
+
+
+def test_glb_primitives_materials_and_base_colour_texture(tmp_path):
+    """The same scene as a GLB (trimesh's export): two primitives with their materials, Spot's
+    baseColorTexture embedded, the same texture mean over Spot's surface as the OBJ's map_Kd."""
+    import trimesh
+
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model import parts as pm
+
+    trimesh.load(SUN / "mesh.obj", process=False).export(tmp_path / "mesh.glb")
+    mesh = load_mesh(tmp_path / "mesh.glb")
+    sp = pm.scene_parts(mesh, tmp_path / "mesh.glb", tmp_path)
+    by_name = {p.name: p for p in sp.parts}
+    assert by_name["spot"].texture is not None and by_name["ground"].texture is None
+    assert by_name["ground"].kd == pytest.approx((0.35, 0.45, 0.6), abs=0.003)  # glTF's factor, 8 bits here
+    assert pm.part_mean_base(sp, mesh, sp.names.index("spot")) == pytest.approx([0.7894, 0.6414, 0.5785], rel=0.01)
