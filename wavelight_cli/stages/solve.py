@@ -33,7 +33,7 @@ VERSION = 9  # 9: parts and textures (per-pixel albedo, per-part scales; materia
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
 #   (candidates, decision), plastic fields in reflectance.json; 8: several parts and textures (the mesh's
 #   materials, materials.toml: per-part kd fitted with the light), reflectance.json's `parts`
-COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
+COMPARE_VERSION = 5  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5: those of a coarse light first, as solve
 
 
 class ConsoleProgress:
