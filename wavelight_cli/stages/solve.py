@@ -25,11 +25,12 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view
 from .visibility import visibility_stage
 
-VERSION = 7  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 8  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
-#   (candidates, decision), plastic fields in reflectance.json
+#   (candidates, decision), plastic fields in reflectance.json; 8: auto gives a significant probe that its
+#   own held-out rows do not reward its own light before it stays Lambertian
 COMPARE_VERSION = 4  # 4: the bases solved on the system solve ends on (bright directions cast exactly)
 
 
