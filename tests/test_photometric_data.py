@@ -227,24 +227,30 @@ def test_a_convex_ball_seen_through_a_long_lens_shadows_nothing(built):
     assert (all_shadowed, blocked) == (0, 0), f"{all_shadowed} pixels shadowed toward every texel, {blocked} rays"
 
 
-SOLVED = (0, 6, 14)  # photos 002, 038, 086
+# photo: the relit error measured at R = 16 with a margin (3.6 %, 6.6 %, 16.6 % on 2026-12-02)
+SOLVED = {0: 0.05, 7: 0.09, 14: 0.19}  # photos 002, 044, 086
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("index", SOLVED)
+@pytest.mark.parametrize("index", sorted(SOLVED))
 def test_solve_finds_the_led_on_the_ball_photos(tmp_path, view, index):
-    """`solve --resolution 16` with the defaults (20-35 s each): the power-weighted centroid of the
-    recovered light's brightest region is within 4 deg of the LED and the whole power vector within
-    3 deg. With the false self-shadowing these three were 13-22 deg off (power 1.6-2.9 deg) with a
-    relit error of 34-38 %. (Not every photo is this close at R = 16: 074 and 092 are 14-15 deg off
-    with 0 shadowed pixels, see benchmarks/diligent_ball.md.)"""
+    """`solve --resolution 16` with the defaults (25-40 s each under load): the power-weighted
+    centroid of the recovered light's brightest region is within 3.5 deg of the LED, the whole power
+    vector within 2.5 deg, and auto chooses a specular model (the ball is shiny). Measured at R = 16:
+    002 2.8 / 1.9 deg, plastic (relit 3.6 %); 044 1.7 / 2.0 deg, plastic (6.6 %); 086 1.3 / 0.6 deg,
+    blinn-phong (16.6 %). 044 is the photo whose probe's held-out rows miss the highlight: before
+    auto gave such a probe its own light, it stayed Lambertian 4.8 deg off. At the default R = 32,
+    on all 16 photos: median 1.5 deg, worst 4.8 deg, and 068 and 092 still Lambertian (4.1 and 4.8
+    deg); R = 32 is not much better than R = 16 here (benchmarks/diligent_ball.md)."""
     from pipelines.io import light_file as lt
 
     scene, led, _ = ph.build_ball_scene(tmp_path / "scene", index, view=view)
     ok(invoke(scene, "solve", "--resolution", "16"))
     report = json.loads((scene / "out" / "solve_report.json").read_text())
+    chosen = json.loads((scene / "out" / "reflectance.json").read_text())
     texels, cube, _ = lt.read_solution_light(scene / "out" / "coefficients.h5")
     region = ph.angle_deg(ph.region_centroid(texels, cube.directions, cube.solid_angles), led)
     power = ph.angle_deg(ph.power_direction(texels, cube.directions, cube.solid_angles), led)
-    assert region < 4.0 and power < 3.0, (region, power)
-    assert report["relit"]["relative_rmse_vs_photo"] < 0.2
+    assert region < 3.5 and power < 2.5, (region, power)
+    assert chosen["model"] in ("plastic", "blinn-phong"), chosen["decision"]
+    assert report["relit"]["relative_rmse_vs_photo"] < SOLVED[index]

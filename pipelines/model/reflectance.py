@@ -595,9 +595,11 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
 
     1. Light under Lambert (kd = kd_reference).
     2. A probe: LM with that light fixed, from `start` (on `probe_rows` when given, or
-       `probe_rows(light)`: it only has to tell whether a specular term helps). If ks is not significant (< 3 sigma) or the probe
-       lowers the held-out error of the same light by less than `min_gain`, stay Lambertian (no
-       further light solve).
+       `probe_rows(light)`: it only has to tell whether a specular term helps). If ks is not
+       significant (< 3 sigma), stay Lambertian (no further light solve). If it is but the probe
+       lowers the held-out error of the same light by less than `min_gain` (its held-out rows are a
+       spread sample that a small highlight can miss), the probe's material gets its own light (the
+       first solve of step 3) and stays Lambertian unless that lowers the held-out error by `min_gain`.
     3. Otherwise the lobe: the probe's material gets its own light (one solve); each of
        `plastic_starts` (the microfacet dielectric, e.g. GGX and Beckmann) is fitted on the same
        rows with that light fixed and gets its own light in turn. The best of each family (by
@@ -634,11 +636,10 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     compared = which.replace("_", "-") + " rows of the probe"
     candidates["probe"] = {**probe.summary(), "gain": gain, "compared_on": compared, "lambert_rmse_same_rows": plain}
     probe_round = Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)
-    if not probe.ks_significant or gain < min_gain:
+    if not probe.ks_significant:
         ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
-        why = (f"is not significant (ks {ks:.3g} +- {sd:.2g})" if not probe.ks_significant else
-               f"lowers the {which.replace('_', '-')} error by only {100 * gain:.2f} % (< {100 * min_gain:g} %)")
-        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed {why}", [r0, probe_round])
+        return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed is not significant "
+                    f"(ks {ks:.3g} +- {sd:.2g})", [r0, probe_round])
     # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
     # candidates are then fitted with that light fixed (it holds a highlight-free sun, unlike
     # Lambert's, which bends towards the highlights), from the alpha that matches the probe's
@@ -656,6 +657,16 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
 
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
     sol1 = first_light(start.model, material)
+    if gain < min_gain:
+        # a significant ks that the probe's held-out rows do not reward: those are a spread sample,
+        # which a small highlight can all but miss; its own light's held-out error (over all of the
+        # light's held-out pixels, as Lambert's) decides
+        gain1 = 1.0 - tried[-1][0] / base if base else 0.0
+        candidates["probe"]["gain_under_its_own_light"] = gain1
+        if gain1 < min_gain:
+            return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed lowers the "
+                        f"{which.replace('_', '-')} error by only {100 * gain:.2f} %, and under its own light the "
+                        f"held-out error by {100 * gain1:.2f} % (< {100 * min_gain:g} %)", [r0, probe_round])
     if start.model != PLASTIC and plastic_starts:
         alpha0 = float(np.sqrt(2.0 / (max(probe.material.shininess, 0.0) + 2.0)))
         for ps in plastic_starts:

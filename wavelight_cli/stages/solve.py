@@ -25,7 +25,7 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_views
 from .visibility import visibility_stage
 
-VERSION = 9  # 9: parts and textures (per-pixel albedo, per-part scales; materials.toml); 8: several views (views/NAME) under one light, their rows together; whole-view hold-out from 3
+VERSION = 10  # 10: auto gives a significant probe its own light before it stays Lambertian; 9: parts and textures (per-pixel albedo, per-part scales; materials.toml); 8: several views (views/NAME) under one light, their rows together; whole-view hold-out from 3
 #   views; per-view results (solve_report.json "views", out/views/NAME/)
 # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
