@@ -90,14 +90,13 @@ class PlasticData:
         e *= A
         inner = e.sum(axis=1, dtype=np.float64)
         total = inner * g1v
-        caps = mf.grazing_cap(total, nv, a, self.ior, dist)
+        table, dtable = mf.specular_albedo_interpolated(a, self.ior, dist)
+        caps = mf.grazing_cap(total, nv, a, self.ior, dist, table)
         if not derivative:
             return caps
         # c = E / total where active: d log c = d log E - d log total
-        E_tables = [mf.specular_albedo_table(a * np.exp(k * _DLOG), self.ior, dist) for k in (1, -1)]
         mu = np.clip(nv, 0.0, 1.0)
-        dlogE = (np.log(np.maximum(np.interp(mu, mf._MU, E_tables[0]), 1e-300))
-                 - np.log(np.maximum(np.interp(mu, mf._MU, E_tables[1]), 1e-300))) / (2 * _DLOG)
+        dlogE = np.interp(mu, mf._MU, dtable) / np.maximum(np.interp(mu, mf._MU, table), 1e-300)
         dlog_total = (d_inner * g1v + inner * dg1v) / np.maximum(total, 1e-300)
         dcaps = np.where(caps < 1.0, caps * (dlogE - dlog_total), 0.0)
         return caps, dcaps
