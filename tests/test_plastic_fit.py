@@ -71,12 +71,13 @@ def test_lm_recovers_kd_ks_alpha_with_the_light_fixed(coated, alpha0):
     assert fit.fit_rmse < 1.1 * np.sqrt(np.mean(coated.noise**2) / np.mean(coated.photo**2))
 
 
-def test_alternation_lowers_the_error_but_alpha_creeps(coated):
+def test_alternation_lowers_the_error_and_keeps_alpha(coated):
     """Light and plastic alternated from the true alpha with ks/kd 2x off (1 instead of 2): every
-    round lowers the error, but alpha is not kept. Measured: the first LM halves alpha (0.073: the
-    light solved under too weak a lobe holds a blurred sun, which a narrower lobe fits best), then
-    alpha creeps back by ~0.005-0.01 a round (0.106 after 6 rounds, error 0.65 %) as the shadows
-    sharpen the sun. A known limit (README): the alternation does not pin alpha."""
+    round lowers the error and alpha stays near the truth. Measured: 0.150, 0.145, 0.141, 0.129,
+    0.129, 0.128, 0.128 over the rounds (error 1.05 % -> 0.77 %). Before the grazing views' energy cap
+    (`microfacet.grazing_cap`) the first LM halved alpha (0.073) and it crept back by ~0.005-0.01 a
+    round: a few silhouette pixels seen at N.v ~ 0.01 rendered tens of times too bright and drove
+    both the light and the lobe."""
     start = replace(START, roughness=0.15)
     result = rf.alternate(coated.vis, coated.photo, start, coated.solve_light, held_out=coated.held,
                           kd_reference=(0.5, 0.5, 0.5), max_rounds=6)
@@ -86,8 +87,7 @@ def test_alternation_lowers_the_error_but_alpha_creeps(coated):
     print(result.decision, list(zip(alphas, errors)), m)
     assert m.model == "plastic"
     assert all(b < a for a, b in zip(errors[1:], errors[2:])), errors
-    assert all(b > a for a, b in zip(alphas[1::2], alphas[3::2])), alphas  # creeping up
-    assert 0.06 < m.roughness < 0.15
+    assert min(alphas) > 0.12 and 0.12 < m.roughness < 0.16, alphas
 
 
 def test_auto_chooses_plastic_on_a_plastic_scene(coated):

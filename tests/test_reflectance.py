@@ -224,15 +224,22 @@ def test_alternation_rounds_lower_the_error_and_stop(alternated):
 
 
 # -- auto: the simplest model the data support ------------------------------------------------------
-def test_auto_stays_lambertian_on_a_diffuse_scene(vis16):
+@pytest.mark.parametrize("with_plastic", [False, True])
+def test_auto_stays_lambertian_on_a_diffuse_scene(vis16, with_plastic):
     """A Lambertian photo: the probe (LM with the Lambertian light fixed) finds no significant
-    specular term, and no specular light solve is run."""
+    specular term, and no specular light solve is run; with plastic candidates, their probes under
+    the same light (run when the Blinn-Phong probe does not pass) find none either."""
     syn = Synthetic(vis16, Material(kd=(0.5, 0.5, 0.5)), seed=3)
+    plastic = [Material(kd=(0.5, 0.5, 0.5), ks=(0.5, 0.5, 0.5), model="plastic", roughness=0.1, distribution=d,
+                        ior=1.49) for d in ("ggx", "beckmann")] if with_plastic else ()
     result = rf.select(syn.vis, syn.photo, start_from(0.125, 20.0), syn.solve_light, held_out=syn.held,
-                       kd_reference=(0.5, 0.5, 0.5))
+                       kd_reference=(0.5, 0.5, 0.5), plastic_starts=plastic)
     assert result.material.model == "lambert"
     assert result.decision.startswith("lambert")
     assert syn.light_solves == 1
+    if with_plastic:
+        assert {"lambert_probe_plastic-ggx", "lambert_probe_plastic-beckmann"} <= set(result.candidates)
+        assert result.decision.endswith("(nor does a plastic one)"), result.decision
 
 
 def test_auto_switches_on_a_specular_scene(glossy):

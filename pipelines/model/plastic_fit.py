@@ -62,6 +62,44 @@ class PlasticData:
     n_pixels_available: int
     lit_texels: int
     rows: np.ndarray
+    # grazing views (N.v < microfacet.GRAZING_NV): their positions in the rows and the lobe's factors
+    # over every texel, unshadowed and unweighted, for the lobe's energy cap (`microfacet.grazing_cap`)
+    graze: np.ndarray | None = None
+    graze_factors: tuple | None = None
+
+    def _caps(self, a: float, derivative: bool = False):
+        """The grazing rows' energy caps at alpha (as `render.plastic_specular_transport`), and with
+        `derivative` their derivatives with respect to log alpha (0 where a cap is inactive)."""
+        if self.graze is None or not len(self.graze):
+            return None
+        A, x2, y2, wx, wy, t2d = self.graze_factors
+        dist = self.distribution
+        de = np.empty_like(x2) if derivative else None
+        e = mf.lobe_values(x2, y2, wx, wy, a, dist, derivative_out=de)
+        g = mf.smith_g1(t2d, a, dist, derivative=derivative)
+        nv = self.nv[self.graze]
+        g1v = mf.smith_g1((1.0 - np.minimum(nv, 1.0) ** 2) / np.maximum(nv, 1e-6) ** 2, a, dist,
+                          derivative=derivative)
+        if derivative:
+            (g, dg), (g1v, dg1v) = g, g1v
+            de *= np.asarray(g, np.float32)
+            de += e * np.asarray(dg, np.float32)
+            de *= A
+            d_inner = de.sum(axis=1, dtype=np.float64)
+        e *= np.asarray(g, np.float32)
+        e *= A
+        inner = e.sum(axis=1, dtype=np.float64)
+        total = inner * g1v
+        table, dtable = mf.specular_albedo_interpolated(a, self.ior, dist)
+        caps = mf.grazing_cap(total, nv, a, self.ior, dist, table)
+        if not derivative:
+            return caps
+        # c = E / total where active: d log c = d log E - d log total
+        mu = np.clip(nv, 0.0, 1.0)
+        dlogE = np.interp(mu, mf._MU, dtable) / np.maximum(np.interp(mu, mf._MU, table), 1e-300)
+        dlog_total = (d_inner * g1v + inner * dg1v) / np.maximum(total, 1e-300)
+        dcaps = np.where(caps < 1.0, caps * (dlogE - dlog_total), 0.0)
+        return caps, dcaps
 
     def evaluate(self, alpha: float, derivative: bool = False):
         """(B', S) (P, 3) each: the base without b(alpha) and the lobe; with `derivative` also their
@@ -103,10 +141,18 @@ class PlasticData:
         parallel_blocks(run, list(range(0, P, _BLOCK)))
         B = Bq * tv[:, None]
         S = S0 * g1v[:, None]
+        caps = self._caps(a, derivative)
         if not derivative:
+            if caps is not None:
+                S[self.graze] *= caps[:, None]
             return B, S
         dB = Bq * dtv[:, None] + dBq * tv[:, None]
         dS = dS0 * g1v[:, None] + S0 * dg1v[:, None]
+        if caps is not None:  # the grazing rows: (c S)' = c S' + c' S
+            c, dc = caps
+            k = self.graze
+            dS[k] = c[:, None] * dS[k] + dc[:, None] * S[k]
+            S[k] *= c[:, None]
         return B, S, dB, dS
 
 
@@ -154,6 +200,15 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
         arrays["A"][k] = A * V
         arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
         out += len(r)
+    graze = np.flatnonzero(nv < mf.GRAZING_NV)
+    graze_factors = None
+    if len(graze):
+        g_rows = rows[graze]
+        all_dirs = cube.directions.astype(np.float32)
+        nrm = s.normal[g_rows].astype(np.float32)
+        graze_factors = mf.lobe_factors(nrm @ all_dirs.T, nv[graze, None].astype(np.float32),
+                                        s.view[g_rows].astype(np.float32) @ all_dirs.T,
+                                        cube.solid_angles.astype(np.float32)[None, :], material.ior)
     values = np.asarray(photo, np.float64)[rows]
     if albedo is not None:  # per-pixel relative albedo (parts, textures) under the base
         a_rows = np.asarray(albedo, np.float64)[rows]
@@ -167,7 +222,8 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
         values = values * sw[:, None]
     a = arrays
     return PlasticData(PLASTIC, material.distribution, float(material.ior), Q, lam, a["A"], a["x2"], a["y2"], a["wx"],
-                       a["wy"], a["t2d"], nv, L[lit], values, ~held_out[rows], int(use.sum()), K, rows)
+                       a["wy"], a["t2d"], nv, L[lit], values, ~held_out[rows], int(use.sum()), K, rows, graze,
+                       graze_factors)
 
 
 def base_scale(alpha: float, ior: float, distribution: str) -> float:

@@ -636,10 +636,36 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     compared = which.replace("_", "-") + " rows of the probe"
     candidates["probe"] = {**probe.summary(), "gain": gain, "compared_on": compared, "lambert_rmse_same_rows": plain}
     probe_round = Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)
-    if not probe.ks_significant:
+    passed = probe.ks_significant and gain >= min_gain
+    by_plastic = False
+    if not passed and start.model != PLASTIC and plastic_starts:
+        # a Fresnel-weighted lobe can explain a highlight the probe's lobe cannot (it brightens towards
+        # grazing views): before staying Lambertian, probe each plastic start with the same light fixed
+        # on the same rows; one that passes sends the scene on to the lobe's choice below
+        for ps in plastic_starts:
+            ps = replace(ps, kd=start.kd)
+            name = f"lambert_probe_{ps.model}-{ps.distribution}"
+            try:
+                pd = lm_data(vis, photo, sol0.light, ps, use, held_out, **_rows(chosen), albedo=_now(albedo))
+            except FitError:
+                continue
+            pp = lm_fit(pd, ps)
+            p_err = pp.held_out_rmse if which == "held_out" else pp.fit_rmse
+            p_gain = 1.0 - p_err / plain if plain else 0.0
+            candidates[name] = {**pp.summary(), "gain": p_gain, "compared_on": compared,
+                                "note": f"fitted with the Lambertian light fixed (the {start.model} probe did not pass)"}
+            if pp.ks_significant and p_gain >= min_gain:
+                passed = by_plastic = True
+                candidates["probe"]["passed_by"] = name
+                if note:
+                    note(f"reflectance: the {start.model} probe lowers the error by {100 * gain:.2f} %, a {ps.model} "
+                         f"({ps.distribution}) probe by {100 * p_gain:.2f} %: choosing the lobe")
+                break
+    if not passed and not probe.ks_significant:
         ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
+        nor = " (nor does a plastic one pass)" if any(k.startswith("lambert_probe_") for k in candidates) else ""
         return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed is not significant "
-                    f"(ks {ks:.3g} +- {sd:.2g})", [r0, probe_round])
+                    f"(ks {ks:.3g} +- {sd:.2g}){nor}", [r0, probe_round])
     # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
     # candidates are then fitted with that light fixed (it holds a highlight-free sun, unlike
     # Lambert's, which bends towards the highlights), from the alpha that matches the probe's
@@ -657,7 +683,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
 
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
     sol1 = first_light(start.model, material)
-    if gain < min_gain:
+    if gain < min_gain and not by_plastic:
         # a significant ks that the probe's held-out rows do not reward: those are a spread sample,
         # which a small highlight can all but miss; its own light's held-out error (over all of the
         # light's held-out pixels, as Lambert's) decides
@@ -666,7 +692,9 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         if gain1 < min_gain:
             return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed lowers the "
                         f"{which.replace('_', '-')} error by only {100 * gain:.2f} %, and under its own light the "
-                        f"held-out error by {100 * gain1:.2f} % (< {100 * min_gain:g} %)", [r0, probe_round])
+                        f"held-out error by {100 * gain1:.2f} % (< {100 * min_gain:g} %)"
+                        + (" (nor does a plastic probe pass)" if any(k.startswith("lambert_probe_") for k in candidates)
+                           else ""), [r0, probe_round])
     if start.model != PLASTIC and plastic_starts:
         alpha0 = float(np.sqrt(2.0 / (max(probe.material.shininess, 0.0) + 2.0)))
         for ps in plastic_starts:

@@ -147,7 +147,8 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, materia
 def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
                                material: Material) -> np.ndarray:
     """(P, N) float32 the coating's lobe (ks = 1): V w_i F(v.h) D(h) G1(v) G1(d_i) / (4 N.v) at the texel
-    centres, with the texel-widened roughness (`microfacet.lobe_factors`, `lobe_values`); blocks of
+    centres, with the texel-widened roughness (`microfacet.lobe_factors`, `lobe_values`), views with
+    N.v < GRAZING_NV capped at the coating's specular albedo (`microfacet.grazing_cap`); blocks of
     rows on both cores."""
     P, N = len(normals), cube.n_texels
     d = cube.directions.astype(np.float32)
@@ -174,6 +175,10 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
             o *= A
             o *= mf.smith_g1(t2d, alpha, dist)
             o *= g1v_all[sl, None]
+            graze = nv_all[sl] < mf.GRAZING_NV
+            if graze.any():  # the lobe's energy at grazing views, before shadowing (`microfacet.grazing_cap`)
+                o[graze] *= mf.grazing_cap(o[graze].sum(axis=1), nv_all[sl][graze], alpha, eta,
+                                           dist).astype(np.float32)[:, None]
             o *= V[sl]
 
     parallel_blocks(run, list(range(0, P, b)))
