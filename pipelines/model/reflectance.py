@@ -663,7 +663,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
                 break
     if not passed and not probe.ks_significant:
         ks, sd = float(np.mean(probe.material.ks)), probe.sigma["ks"]
-        nor = " (nor does a plastic one pass)" if any(k.startswith("lambert_probe_") for k in candidates) else ""
+        nor = " (nor does a plastic one)" if any(k.startswith("lambert_probe_") for k in candidates) else ""
         return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed is not significant "
                     f"(ks {ks:.3g} +- {sd:.2g}){nor}", [r0, probe_round])
     # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
@@ -693,7 +693,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
             return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed lowers the "
                         f"{which.replace('_', '-')} error by only {100 * gain:.2f} %, and under its own light the "
                         f"held-out error by {100 * gain1:.2f} % (< {100 * min_gain:g} %)"
-                        + (" (nor does a plastic probe pass)" if any(k.startswith("lambert_probe_") for k in candidates)
+                        + (" (nor does a plastic one)" if any(k.startswith("lambert_probe_") for k in candidates)
                            else ""), [r0, probe_round])
     if start.model != PLASTIC and plastic_starts:
         alpha0 = float(np.sqrt(2.0 / (max(probe.material.shininess, 0.0) + 2.0)))
