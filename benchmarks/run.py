@@ -548,8 +548,8 @@ def materials_section(repeats: int) -> list[str]:
             t = r["truth"]
             smooth = t.get("type") == "plastic"
             t_alpha = 0.0 if smooth else t.get("alpha")
-            truth = (f"{t['type']} {t.get('distribution', '')} alpha {t_alpha:g}".strip() if t_alpha is not None
-                     else t.get("type", "?"))
+            truth = " ".join(str(x) for x in (t.get("type", "?"), t.get("distribution"),
+                                              None if t_alpha is None else f"alpha {t_alpha:g}") if x)
             chosen = r["model"] + (f" {r['distribution']}" if r.get("distribution") else "")
             ok_model = r["model"] == expected
             goals["auto"].append((name, ok_model))

@@ -638,10 +638,12 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     probe_round = Round(1, probe.material, probe.fit_rmse, probe.held_out_rmse, 0.0, probe, "probe", plain)
     passed = probe.ks_significant and gain >= min_gain
     by_plastic = False
-    if not passed and start.model != PLASTIC and plastic_starts:
+    if not passed and probe.ks_significant and start.model != PLASTIC and plastic_starts:
         # a Fresnel-weighted lobe can explain a highlight the probe's lobe cannot (it brightens towards
-        # grazing views): before staying Lambertian, probe each plastic start with the same light fixed
-        # on the same rows; one that passes sends the scene on to the lobe's choice below
+        # grazing views): when the probe finds a significant ks but too small a gain, probe each
+        # plastic start with the same light fixed on the same rows before staying Lambertian; one
+        # that passes sends the scene on to the lobe's choice below. (No significant ks at all: a
+        # diffuse scene, which is spared the plastic probes: ~7 s on bunny_sun.)
         for ps in plastic_starts:
             ps = replace(ps, kd=start.kd)
             name = f"lambert_probe_{ps.model}-{ps.distribution}"
