@@ -308,13 +308,9 @@ def precast_bright(systems: _Systems, backend, material: Material, progress: Pro
     coarse light (`_Systems.coarse_light`: blocks of a few texels) and their neighbouring texels,
     cast exactly for every pixel, so that every later system, the level choice and the reflectance
     rounds included, sees them exactly. Returns the texels cast (none for an overcast sky)."""
-    cube = systems.vis.cube
-    texels = bright_texels(systems.coarse_light(material), cube, most=MAX_PRECAST)
-    if len(texels):  # and their neighbours: the final light's sun may sit a texel off the coarse one's
-        d = cube.directions
-        reach = np.cos(1.5 * np.sqrt(cube.solid_angles[texels]))
-        near = np.flatnonzero(((d @ d[texels].T) >= reach[None, :]).any(axis=1))
-        texels = near if len(near) <= MAX_PRECAST else texels
+    # and their neighbours: the final light's sun may sit a texel off the coarse one's
+    texels = with_neighbours(bright_texels(systems.coarse_light(material), systems.vis.cube, most=MAX_PRECAST),
+                             systems.vis.cube)
     if len(texels):
         progress.note(f"casting {len(texels)} bright light directions (of a coarse light) exactly for every pixel")
         systems.recast(backend, texels)
@@ -344,6 +340,18 @@ def recast_bright(systems: _Systems, backend, sol, system, material: Material, l
     sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
                       o.sh_order, o.sh_nonnegative)
     return sol, system, texels
+
+
+def with_neighbours(texels: np.ndarray, cube, most: int = MAX_PRECAST) -> np.ndarray:
+    """`texels` and the texels around them (directions within 1.5 texel widths), unless that makes
+    more than `most` (then `texels` alone)."""
+    texels = np.asarray(texels, np.int64)
+    if not len(texels):
+        return texels
+    d = cube.directions
+    reach = np.cos(1.5 * np.sqrt(cube.solid_angles[texels]))
+    near = np.flatnonzero(((d @ d[texels].T) >= reach[None, :]).any(axis=1))
+    return near if len(near) <= most else texels
 
 
 def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
