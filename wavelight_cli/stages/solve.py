@@ -239,7 +239,6 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
     """The used pixels' known relative albedo from the mesh's parts and textures (None: one uniform
     material), each pixel's texture lookup filtered to its footprint in its own view's camera
     (`model.parts`)."""
-    from pipelines.controllers.views import subset
     from pipelines.io.scene_files import read_pose
     from pipelines.model import parts as pm
 
@@ -250,7 +249,9 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
     footprint = np.empty(data.n_pixels)
     for k, (v, cam) in enumerate(zip(views, cameras)):
         sl = layout.rows(k)
-        footprint[sl] = pm.pixel_footprint(subset(data, np.arange(sl.start, sl.stop)).samples, cam, read_pose(v.pose))
+        rows = type(s)(**{f: getattr(s, f)[sl] for f in ("pixel", "position", "normal", "geometric_normal", "view",
+                                                           "face")})
+        footprint[sl] = pm.pixel_footprint(rows, cam, read_pose(v.pose))
     base, part = pm.pixel_base(sp, mesh, s.face, s.position, footprint)
     pm.choose_reference(sp, part)
     seen = np.bincount(part, minlength=len(sp.parts))
