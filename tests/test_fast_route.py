@@ -115,31 +115,6 @@ def test_fast_glossy_fit_matches_the_exhaustive_one(routes):
     assert _angle(a["centroid"]["direction"], b["centroid"]["direction"]) < 1.0
 
 
-def test_bright_directions_are_cast_before_the_solve(routes, mitsuba_scene):
-    """On the default route the visibility is inferred between cast pixels (`coherent_visibility`);
-    the directions that carry much of the light are cast exactly for every pixel. Those of a coarse
-    light are cast before the solve, so the level choice and the fit see them exactly: on
-    bunny_sun (a sun) the coarse light's directions are all the final light needs (no second
-    solve), and the light matches the fast route on exactly cast visibility (sun within 1 degree,
-    held-out error within 5 %)."""
-    from pipelines.geometry.visibility import VisibilityData, coherent_visibility
-
-    fr, out = routes("bunny_sun")
-    scene = mitsuba_scene("bunny_sun")
-    stored, _ = coherent_visibility(scene.backend, fr.visibility.samples, fr.visibility.cube)
-    vis = VisibilityData(fr.visibility.samples, fr.visibility.cube, 1, stored)
-    photo = images.read_image(fr.scene.path / "image.exr")
-    result = solve_scene(vis, photo, Material(), SolveOptions(), ReflectanceOptions("lambert"),
-                         backend=scene.backend, adaptive=True)
-    cast = result.report["exact_directions"]
-    assert 0 < cast["before_the_solve"] == len(cast["texels"]) <= 256
-    reference = out[False]
-    a = brightest(result.solution.light, vis.cube)["centroid"]["direction"]
-    b = brightest(reference.solution.light, vis.cube)["centroid"]["direction"]
-    assert _angle(a, b) < 1.0
-    assert result.solution.held_out_rmse <= 1.05 * reference.solution.held_out_rmse + 1e-4
-
-
 def test_bright_texels_of_a_sky_and_of_a_sun():
     """At the default R = 32, an even sky has no direction that needs casting (every texel's power
     share is 1/3072); a sun's few texels do, and nothing else."""

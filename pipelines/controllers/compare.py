@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 from ..light.bases import COMPARE_RUNS
 from ..model.materials import Material
-from .solve import Progress, SolveOptions, _Systems, precast_bright, prepare_photo, recast_bright
+from .solve import Progress, SolveOptions, _Systems, prepare_photo, recast_bright
 
 COLUMNS = {"fit_rmse": "relative RMSE over the fit pixels at the chosen level",
            "held_out_rmse": "relative RMSE over the held-out pixels (not fitted)",
@@ -30,24 +30,20 @@ class CompareResult:
 def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_path=None,
                   progress: Progress | None = None, backend=None, adaptive: bool = False) -> CompareResult:
     """Solve the light in every basis (`bases.COMPARE_RUNS`) on one system of `material`: the
-    system `solve` ends on (with `adaptive`, the brightest directions of a coarse light and then of
-    the default wavelet light cast exactly for every pixel by `backend`), so the wavelet row is the
-    default solve's light."""
+    system `solve` ends on (with `adaptive`, the default wavelet light's brightest directions cast
+    exactly for every pixel by `backend`), so the wavelet row is the default solve's light."""
     from ..light import bases
     from ..light import solution as ls
 
     progress = progress or Progress()
     values, usable, held = prepare_photo(vis, photo, options, photo_path)
     systems = _Systems(vis, values, usable, held, options, progress)
-    precast = None
-    if adaptive and backend is not None and not options.exact:  # as `solve_scene`: a coarse light's first
-        precast = precast_bright(systems, backend, material, progress)
     ne = systems.system(material)
     if adaptive and backend is not None:
         o = options.light
         first = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
                             o.sh_nonnegative)
-        _, ne, _ = recast_bright(systems, backend, first, ne, material, o, progress, resolve=False, done=precast)
+        _, ne, _ = recast_bright(systems, backend, first, ne, material, o, progress, resolve=False)
     observability, unobservable = ls.observability(ne)
     rows, lights = [], []
     for basis, variant in COMPARE_RUNS:

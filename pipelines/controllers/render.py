@@ -1,7 +1,6 @@
 """Rendering a view under a light with the one forward model (`model.render`), for the stages that
 render (render, relight): where the visibility was inferred (adaptive), the directions that carry
-much of this light and their neighbouring texels are cast exactly for every pixel first
-(`controllers.solve.bright_texels`, `with_neighbours`: as solve casts them before its solve)."""
+much of this light are cast exactly for every pixel first (`controllers.solve.bright_texels`)."""
 
 from __future__ import annotations
 
@@ -13,11 +12,11 @@ def render_view(vis, light: np.ndarray, material, backend=None, albedo=None) -> 
     a function (samples -> (P, 3) relative albedo: parts, textures, `model.parts.view_albedo`) or None."""
     from ..geometry.visibility import VisibilityData, recast_columns
     from ..model.render import render
-    from .solve import bright_texels, with_neighbours
+    from .solve import bright_texels
 
     recast = np.zeros(0, np.int64)
     if vis.method == "adaptive" and backend is not None:
-        recast = with_neighbours(bright_texels(light, vis.cube), vis.cube)
+        recast = bright_texels(light, vis.cube)
         if len(recast):
             stored = recast_columns(backend, vis.samples, vis.cube, np.asarray(vis.stored), recast, vis.supersample)
             vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method)

@@ -35,8 +35,6 @@ LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of t
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
-PRECAST_LEVELS = 4  # the coarse light that finds the bright directions before the solve: blocks of <= 4 x 4 texels at R = 32
-MAX_PRECAST = 256  # and at most this many of its texels are cast exactly (a few such blocks)
 PART_ROUNDS = 12  # several parts / textures: light <-> per-part albedo scales, at most this many rounds
 PART_TOL = 1e-3  # ... until no part's scale changes by more than this (relative)
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -211,24 +209,6 @@ class _Systems:
         return (np.concatenate([fs.rows[top], fs.rows[rest], hs.rows[:nh]]),
                 np.concatenate([fs.weights[top], w_rest, w_held]))
 
-    def coarse_light(self, material: Material) -> np.ndarray:
-        """A quick Lambertian light under `material`'s kd: PRECAST_LEVELS wavelet levels on the head
-        of the fit sample (EXPLORE_ROWS rows, float32): where the bright directions are, before any
-        system of the whole sample is built."""
-        from ..light import bases
-        from ..light.rows import TransportRows
-        from ..light.system import LightSystem
-
-        fs = self.fit_sample
-        n = min(EXPLORE_ROWS, len(fs.rows))
-        head = TransportRows(self.vis, fs.rows[:n])
-        w = fs.weights[:n] * (fs.weights.sum() / max(fs.weights[:n].sum(), 1e-300))
-        albedo = None if self.albedo is None else self.albedo.values(fs.rows[:n])
-        fit = head.part(Material(kd=material.kd), self.values[fs.rows[:n]], w, fs.candidates, albedo=albedo)
-        fit.precision = "single"
-        empty = replace(fit.head(0), n_pixels=0)  # no held-out part: the levels are fixed
-        sol = bases.solve(LightSystem(fit, empty, 0.0), self.vis.cube, "wavelet", PRECAST_LEVELS)
-        return sol.light
     def part_scales(self, light: np.ndarray, material: Material) -> np.ndarray:
         """The per-part albedo scales that fit the photo best under `light` (`parts.fit_scales`), over
         the rows the light is fitted to (the fit sample; on the exact route every fit pixel)."""
@@ -303,32 +283,16 @@ class _Systems:
             self.held_rows = TransportRows(self.vis, self.held_sample.rows)
 
 
-def precast_bright(systems: _Systems, backend, material: Material, progress: Progress) -> np.ndarray:
-    """Before the light is solved (sampled route, inferred visibility): the bright directions of a
-    coarse light (`_Systems.coarse_light`: blocks of a few texels) and their neighbouring texels,
-    cast exactly for every pixel, so that every later system, the level choice and the reflectance
-    rounds included, sees them exactly. Returns the texels cast (none for an overcast sky)."""
-    # and their neighbours: the final light's sun may sit a texel off the coarse one's
-    texels = with_neighbours(bright_texels(systems.coarse_light(material), systems.vis.cube, most=MAX_PRECAST),
-                             systems.vis.cube)
-    if len(texels):
-        progress.note(f"casting {len(texels)} bright light directions (of a coarse light) exactly for every pixel")
-        systems.recast(backend, texels)
-    return texels
-
-
 def recast_bright(systems: _Systems, backend, sol, system, material: Material, light_options: LightOptions,
-                  progress: Progress, resolve: bool = True, done: np.ndarray | None = None):
+                  progress: Progress, resolve: bool = True):
     """Cast the directions that carry much of `sol`'s light exactly for every pixel (the visibility
-    was inferred there from neighbours; `done`: texels already cast) and solve the light again on
-    the corrected system, levels chosen afresh, so the report's levels and errors are all of the
-    system the light is solved on. Returns (solution, system, recast texels), the solution None
-    unless `resolve`; all unchanged when no direction needs it."""
+    was inferred there from neighbours) and solve the light again on the corrected system, levels
+    chosen afresh, so the report's levels and errors are all of the system the light is solved on.
+    Returns (solution, system, recast texels), the solution None unless `resolve`; all unchanged
+    when no direction needs it."""
     from ..light import bases
 
     texels = bright_texels(sol.light, systems.vis.cube)
-    if done is not None:
-        texels = np.setdiff1d(texels, done)
     if not len(texels):
         return sol, system, texels
     progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
@@ -340,18 +304,6 @@ def recast_bright(systems: _Systems, backend, sol, system, material: Material, l
     sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
                       o.sh_order, o.sh_nonnegative)
     return sol, system, texels
-
-
-def with_neighbours(texels: np.ndarray, cube, most: int = MAX_PRECAST) -> np.ndarray:
-    """`texels` and the texels around them (directions within 1.5 texel widths), unless that makes
-    more than `most` (then `texels` alone)."""
-    texels = np.asarray(texels, np.int64)
-    if not len(texels):
-        return texels
-    d = cube.directions
-    reach = np.cos(1.5 * np.sqrt(cube.solid_angles[texels]))
-    near = np.flatnonzero(((d @ d[texels].T) >= reach[None, :]).any(axis=1))
-    return near if len(near) <= most else texels
 
 
 def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
@@ -475,9 +427,6 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")
     systems = _Systems(vis, values, usable, held, options, progress, albedo)
     light_options = options.light
-    precast = np.zeros(0, np.int64)
-    if adaptive and backend is not None and not options.exact:
-        precast = precast_bright(systems, backend, material, progress)
 
     def on_level(rec):
         h = "" if rec.held_out_rmse is None else f", held-out {100 * rec.held_out_rmse:.3f} %"
@@ -610,11 +559,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         system = systems.system(material)
         sol = full_solve(material, system)
         result.solution, result.context = sol, system
-    recast = precast
-    if adaptive and backend is not None:  # the final light's bright directions not cast yet (all on --exact)
-        sol, system, more = recast_bright(systems, backend, sol, system, material, light_options, progress,
-                                          done=precast)
-        recast = np.union1d(precast, more).astype(np.int64)
+    recast = np.zeros(0, np.int64)
+    if adaptive and backend is not None:
+        sol, system, recast = recast_bright(systems, backend, sol, system, material, light_options, progress)
     observability, unobservable = ls.observability(system)
     relit = render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
     versus = versus_photo(relit, values, usable)
@@ -644,10 +591,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "pixels": {"used": int(len(values)), "saturated_excluded": int(saturated.sum()),
                    "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
         "sample": systems.sample_info,
-        "exact_directions": {"texels": recast.tolist(), "before_the_solve": int(len(precast)),
-                             "note": "directions that carry much of the light, cast for every pixel (on the "
-                                     "sampled route first those of a coarse light, before the solve; then any "
-                                     "of the final light's not cast yet, and the light solved again)"},
+        "exact_directions": {"texels": recast.tolist(),
+                             "note": "directions that carry much of the light, cast for every pixel"},
         "normal_equations_seconds": getattr(system, "seconds", 0.0),
         "observability": {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
                           "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum()),

@@ -19,7 +19,7 @@ from ..scene import (SceneFiles, load_photo, mesh_coverage, other_view, photo_vi
                      solved_light)
 from .visibility import visibility_stage
 
-VERSION = 5  # 5: the bright directions cast with their neighbouring texels (as solve); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
+VERSION = 6  # 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
 
 @dataclass(frozen=True)

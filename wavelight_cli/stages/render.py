@@ -13,7 +13,7 @@ from ..outputs import read_rgba, view_png, write_light, write_residual, write_vi
 from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view, require
 from .visibility import visibility_stage
 
-VERSION = 5  # 5: the bright directions cast with their neighbouring texels (as solve); 4: render.exr has alpha, render.png the photo where nothing was rendered
+VERSION = 6  # 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: render.exr has alpha, render.png the photo where nothing was rendered
 
 
 def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Path, material, exposure: float | None,
