@@ -694,7 +694,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         if gain1 < min_gain:
             return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed lowers the "
                         f"{which.replace('_', '-')} error by only {100 * gain:.2f} %, and under its own light the "
-                        f"held-out error by {100 * gain1:.2f} % (< {100 * min_gain:g} %)"
+                        f"{'held-out' if sol1.held_out_rmse is not None else 'fit'} error by {100 * gain1:.2f} % "
+                        f"(< {100 * min_gain:g} %)"
                         + (" (nor does a plastic one)" if any(k.startswith("lambert_probe_") for k in candidates)
                            else ""), [r0, probe_round])
     if start.model != PLASTIC and plastic_starts:
