@@ -629,6 +629,15 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
     probe = lm_fit(data, start)
+
+    def fitted_under(material, light):
+        """`material`'s LM fit with `light` fixed, on the probe's rows (None if its rows cannot fit it)."""
+        try:
+            d = lm_data(vis, photo, light, material, use, held_out, **_rows(chosen), albedo=_now(albedo))
+        except FitError:
+            return None
+        return lm_fit(d, material)
+
     which = "held_out" if (~data.fit).any() else "fit"
     plain = data.rmse(lambert.kd, 0.0, 1.0, which) if hasattr(data, "rmse") else _lambert_rmse(data, lambert.kd, which)
     probe_err = probe.held_out_rmse if which == "held_out" else probe.fit_rmse
@@ -647,11 +656,9 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         for ps in plastic_starts:
             ps = replace(ps, kd=start.kd)
             name = f"lambert_probe_{ps.model}-{ps.distribution}"
-            try:
-                pd = lm_data(vis, photo, sol0.light, ps, use, held_out, **_rows(chosen), albedo=_now(albedo))
-            except FitError:
+            pp = fitted_under(ps, sol0.light)
+            if pp is None:
                 continue
-            pp = lm_fit(pd, ps)
             p_err = pp.held_out_rmse if which == "held_out" else pp.fit_rmse
             p_gain = 1.0 - p_err / plain if plain else 0.0
             candidates[name] = {**pp.summary(), "gain": p_gain, "compared_on": compared,
@@ -703,11 +710,9 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         for ps in plastic_starts:
             ps = replace(ps, kd=material.kd, ks=material.ks, roughness=float(np.clip(alpha0, 0.01, 0.7)))
             name = f"{ps.model}-{ps.distribution}"
-            try:
-                pd = lm_data(vis, photo, sol1.light, ps, use, held_out, **_rows(chosen), albedo=_now(albedo))
-            except FitError:
+            pp = fitted_under(ps, sol1.light)
+            if pp is None:
                 continue
-            pp = lm_fit(pd, ps)
             candidates[f"probe_{name}"] = {**pp.summary(), "compared_on": compared,
                                            "note": f"fitted with the {start.model} probe's light fixed"}
             first_light(name, normalise(pp.material, sol1.light, kd_ref)[0])
