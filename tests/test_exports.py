@@ -367,6 +367,9 @@ def _fake_bpy(active):
                                "Roughness": Socket(0.5), "IOR": Socket(1.5), "Specular IOR Level": Socket(0.5),
                                "Specular Tint": Socket([1.0, 1.0, 1.0, 1.0]), "Coat Weight": Socket(0.0)}
                 self.outputs = {"BSDF": "bsdf-out"}
+            elif kind == "ShaderNodeTexImage":
+                self.inputs, self.outputs, self.image = {}, {"Color": "image-colour-out"}, None
+                self.interpolation, self.extension = "Closest", "CLIP"
             else:
                 self.inputs, self.outputs = {"Surface": "surface-in"}, {}
 
@@ -382,8 +385,13 @@ def _fake_bpy(active):
         materials[name] = types.SimpleNamespace(name=name, node_tree=Tree(), use_nodes=True)
         return materials[name]
 
+    def load_image(path, check_existing=False):
+        return types.SimpleNamespace(filepath=path, colorspace_settings=types.SimpleNamespace(name="sRGB"))
+
     bpy = types.ModuleType("bpy")
-    bpy.data = types.SimpleNamespace(materials=types.SimpleNamespace(get=materials.get, new=new_material), texts=[])
+    bpy.data = types.SimpleNamespace(materials=types.SimpleNamespace(get=materials.get, new=new_material), texts=[],
+                                     images=types.SimpleNamespace(load=load_image))
+    bpy.made_materials = materials
     bpy.path = types.SimpleNamespace(abspath=lambda p: p)
     bpy.context = types.SimpleNamespace(view_layer=types.SimpleNamespace(objects=types.SimpleNamespace(active=active)))
     return bpy
@@ -411,3 +419,85 @@ def test_setup_material_script_sets_what_material_json_says(material, tmp_path, 
         if isinstance(value, list):
             assert got[3] == 1.0
     assert tree.links.made == [("bsdf-out", "surface-in")]
+
+
+# -- several parts: one light scale, a textured part as a linear bitmap ------------------------------
+def _two_parts(model_material):
+    """A plain part and a textured one (reflectance.json's `parts`, and the scene's parts with the
+    texture's linear pixels: their largest red texel 0.9, times the part's red scale 1.5)."""
+    import types
+
+    tex = np.full((4, 8, 3), 0.5, np.float32)
+    tex[1, 2] = (0.9, 0.2, 0.1)
+    listed = [{"name": "ground", "kd": [0.2, 0.3, 0.4], "textured": False, "texture": None, "scale": [1, 1, 1]},
+              {"name": "cow body", "kd": [0.8, 0.5, 0.5], "textured": True, "texture": "cow.png",
+               "scale": [1.5, 1.0, 1.0]}]
+    sp = types.SimpleNamespace(parts=[types.SimpleNamespace(name="cow body", texture=types.SimpleNamespace(levels=[tex])),
+                                      types.SimpleNamespace(name="ground", texture=None)])
+    return ex.part_exports(model_material, listed, sp), tex
+
+
+def test_parts_share_one_light_scale_and_a_texture_becomes_a_bitmap():
+    parts, tex = _two_parts(Material(kd=(1.0, 1.0, 1.0)))
+    assert [p.file_stem for p in parts] == ["ground", "cow_body"]
+    assert parts[0].texture is None and parts[1].texture is tex and parts[1].exact
+    scale = ex.parts_light_scale(Material(kd=(1.0, 1.0, 1.0)), parts)
+    assert scale == pytest.approx(1.5 * 0.9)  # the textured part's largest colour
+    bitmap, base = ex.textured_images(parts[1].material, tex, scale)
+    assert bitmap == pytest.approx(tex * np.array([1.5, 1.0, 1.0]) / scale)
+    assert bitmap.max() == pytest.approx(1.0) and base == pytest.approx(bitmap)  # Lambert: the same in both tools
+    xml = ex.mitsuba_bsdf_xml(parts[1].material, "p", scale, "kd_cow_body.exr")
+    assert '<texture type="bitmap" name="reflectance"><string name="filename" value="kd_cow_body.exr"/>' in xml
+    assert '<boolean name="raw" value="true"/>' in xml
+    plain = ex.material_mapping(parts[0].material, scale)
+    assert plain["mitsuba"]["reflectance"] == pytest.approx(np.array([0.2, 0.3, 0.4]) / scale)
+    assert plain["light_scale"] == scale
+
+
+def test_plastic_parts_texture_the_diffuse_reflectance():
+    """Plastic: the bitmap replaces diffuse_reflectance; the coating's colours share the light scale."""
+    base = Material(kd=(1.0, 1.0, 1.0), ks=(2.0, 2.0, 2.0), model="plastic", roughness=0.2, distribution="ggx", ior=1.5)
+    parts, tex = _two_parts(base)
+    scale = ex.parts_light_scale(base, parts)
+    assert scale >= 2.0  # ks = 2 is a colour too
+    m = ex.material_mapping(parts[1].material, scale)
+    assert m["mitsuba"]["specular_reflectance"] == pytest.approx([2.0 / scale] * 3)
+    bitmap, blender = ex.textured_images(parts[1].material, tex, scale)
+    assert bitmap == pytest.approx(tex * np.asarray(m["mitsuba"]["diffuse_reflectance"], np.float32))
+    assert blender == pytest.approx(tex * np.asarray(m["blender"]["Base Color"], np.float32))
+    xml = ex.mitsuba_bsdf_xml(parts[1].material, "p", scale, "kd_cow_body.exr")
+    assert '<texture type="bitmap" name="diffuse_reflectance">' in xml and "specular_reflectance" in xml
+
+
+def test_setup_material_script_makes_the_parts_materials(tmp_path, monkeypatch):
+    """material.json with parts: one material per part, named as the part; the textured one's Base
+    Color an Image Texture (linear) of its base_<part>.exr; an existing material of that name (the
+    OBJ import's) rebuilt in place; the object keeps its slots."""
+    import runpy
+    import sys
+    import types
+
+    parts, _ = _two_parts(Material(kd=(1.0, 1.0, 1.0)))
+    desc = ex.blender_material_description(Material(kd=(1.0, 1.0, 1.0)), 1.35,
+                                           [(parts[0], None), (parts[1], "base_cow_body.exr")])
+    assert [p["name"] for p in desc["parts"]] == ["ground", "cow body"]
+    assert desc["parts"][1]["base_color_image"] == "base_cow_body.exr"
+    assert any("Image Texture" in line for line in desc["parts"][1]["settings"])
+    (tmp_path / "material.json").write_text(json.dumps(desc))
+    (tmp_path / "setup_material.py").write_text(ex.blender_material_script())
+    bpy = _fake_bpy(None)
+    imported = bpy.data.materials.new("ground")  # as Blender's OBJ import names the usemtl group's material
+    obj = types.SimpleNamespace(name="cow", data=types.SimpleNamespace(materials=[imported]))
+    bpy.context.view_layer.objects.active = obj
+    monkeypatch.setitem(sys.modules, "bpy", bpy)
+    runpy.run_path(str(tmp_path / "setup_material.py"), run_name="__main__")
+    made = bpy.made_materials
+    assert set(made) == {"ground", "cow body"} and obj.data.materials == [imported] and made["ground"] is imported
+    ground = next(n for n in imported.node_tree.nodes.list if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    assert list(ground.inputs["Base Color"].default_value[:3]) == pytest.approx(np.array([0.2, 0.3, 0.4]) / 1.35)
+    cow = made["cow body"].node_tree
+    image = next(n for n in cow.nodes.list if n.bl_idname == "ShaderNodeTexImage")
+    assert image.image.filepath == str(tmp_path / "base_cow_body.exr")
+    assert image.image.colorspace_settings.name == "Linear Rec.709" and image.extension == "REPEAT"
+    bsdf = next(n for n in cow.nodes.list if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    assert ("image-colour-out", bsdf.inputs["Base Color"]) in cow.links.made

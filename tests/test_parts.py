@@ -280,6 +280,47 @@ def test_downstream_stages_use_the_parts(textured):
     assert (textured / "out" / "export" / "mitsuba" / "bsdf_ground.xml").is_file()
     assert invoke(textured, "report").exit_code == 0
     assert "| part | faces | pixels | texture |" in (textured / "out" / "report.md").read_text()
+    _exported_parts_render_in_mitsuba_as_the_photo(textured, solved)
+
+
+def _exported_parts_render_in_mitsuba_as_the_photo(scene: Path, solved: float):
+    """The export's round trip: Mitsuba renders the mesh's parts with their exported BSDFs (Spot's
+    texture as the linear bitmap kd_spot.exr x its scale, the ground's colour) under the exported
+    light, from the photo's camera. Away from the object's silhouette (pixels part object, part
+    ground), that render's error against the photo, beyond Mitsuba's own noise (two seeds), is the
+    solve's relit error (the light at R = 8), and far below the render with Spot exported as its
+    mean colour (what export wrote before)."""
+    pytest.importorskip("mitsuba")
+    import tool_scenes as ts
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    from pipelines.io import images
+
+    export = scene / "out" / "export"
+    spot = next(p for p in json.loads((export / "export.json").read_text())["material"]["parts"] if p["name"] == "spot")
+    assert spot["bitmap"] == "mitsuba/kd_spot.exr" and spot["exact"]
+    photo = images.read_image(scene / "image.exr").pixels
+    obj = images.read_mask(scene / "mask_object.png").astype(bool)
+    keep = images.read_mask(scene / "mask.png").astype(bool) & ~(binary_dilation(obj) & ~binary_erosion(obj))
+    norm = float((photo[keep] ** 2).sum())
+
+    def bias(bsdf_files=None):
+        a, b = (ts.render_mitsuba_parts(scene, export, 16, bsdf_files, seed)[keep] for seed in (1, 2))
+        err2 = ((0.5 * (a + b) - photo[keep]) ** 2).sum() / norm
+        noise2 = ((a - b) ** 2).sum() / (4 * norm)  # of the two renders' mean
+        return float(np.sqrt(max(err2 - noise2, 0.0))), float(np.sqrt(noise2))
+
+    textured, noise = bias()
+    kd = next(p for p in json.loads((scene / "out" / "reflectance.json").read_text())["parts"] if p["name"] == "spot")["kd"]
+    mean = scene / "mean_spot.xml"
+    mean.write_text('<bsdf type="diffuse" version="3.0.0"><rgb name="reflectance" value="'
+                    + ", ".join(f"{v:.6g}" for v in kd) + '"/></bsdf>\n')
+    plain, _ = bias({"spot": mean})
+    print(f"Mitsuba render of the export vs the photo: {100 * textured:.2f} % beyond its noise {100 * noise:.2f} % "
+          f"(the solve's relit error {100 * solved:.2f} %; Spot as its mean colour: {100 * plain:.2f} %)")
+    assert textured < 1.3 * solved + 0.005
+    assert plain > 4 * textured
+
 
 
 def test_glb_primitives_materials_and_base_colour_texture(tmp_path):

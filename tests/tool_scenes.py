@@ -476,3 +476,56 @@ def agreement(first, second, reference):
     noise = noise_level(first, second, reference) / np.sqrt(2)
     return {"error": err, "noise": noise, "bias": float(np.sqrt(max(0.0, err**2 - noise**2))),
             "ratio": float(mean.mean() / reference.mean())}
+
+
+def mitsuba_opencv_sensor(camera: dict, pose: dict, spp: int, seed: int = 0) -> dict:
+    """A scene folder's OpenCV camera (camera.json, pose.json: x_cam = R X + t) as Mitsuba's perspective
+    sensor: Mitsuba's camera frame is (left, up, forward), its film pixel j spans [j, j + 1) (our pixel
+    centre j), principal_point_offset moves the principal point by -offset x film size."""
+    import mitsuba as mi
+
+    R, t = np.asarray(pose["R"], np.float64), np.asarray(pose["t"], np.float64)
+    w, h = int(camera["width"]), int(camera["height"])
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = -R[0], -R[1], R[2], -R.T @ t
+    return {"type": "perspective", "fov_axis": "x", "fov": float(np.degrees(2 * np.arctan(w / (2 * camera["fx"])))),
+            "principal_point_offset_x": -(camera["cx"] + 0.5 - w / 2) / w,
+            "principal_point_offset_y": -(camera["cy"] + 0.5 - h / 2) / h,
+            "to_world": mi.ScalarTransform4f(m.tolist()), "sampler": {"type": "independent", "sample_count": spp,
+                                                                      "seed": seed},
+            "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"}, "pixel_format": "rgb"}}
+
+
+def render_mitsuba_parts(scene: Path, export: Path, spp: int, bsdf_files: dict | None = None, seed: int = 0
+                         ) -> np.ndarray:
+    """The scene folder's mesh, one Mitsuba shape per part (written as an OBJ with its UVs, loaded by
+    Mitsuba's own OBJ loader as a user would) with the part's exported BSDF file
+    (export/mitsuba/bsdf_<part>.xml, or `bsdf_files[part]`), lit by export/mitsuba/emitter.xml, seen
+    by the scene's camera: Mitsuba's `direct` render, (H, W, 3) (`seed`: its sampler's)."""
+    import mitsuba as mi
+
+    from pipelines.io.scene_files import load_mesh
+
+    mi.set_variant("scalar_rgb")
+    mesh = load_mesh(scene / "mesh.obj")
+    shapes = {}
+    for k, name in enumerate(mesh.part_names):
+        tri = mesh.faces[mesh.face_part == k]
+        v, n = mesh.vertices[tri].reshape(-1, 3), mesh.vertex_normals[tri].reshape(-1, 3)
+        uv = mesh.face_uv[mesh.face_part == k].reshape(-1, 2)
+        lines = [f"v {a:.9g} {b:.9g} {c:.9g}" for a, b, c in v] + [f"vn {a:.9g} {b:.9g} {c:.9g}" for a, b, c in n]
+        if np.isfinite(uv).all():
+            lines += [f"vt {a:.9g} {b:.9g}" for a, b in uv]
+            lines += [" ".join(["f"] + [f"{i}/{i}/{i}" for i in (j, j + 1, j + 2)]) for j in range(1, len(v), 3)]
+        else:
+            lines += [" ".join(["f"] + [f"{i}//{i}" for i in (j, j + 1, j + 2)]) for j in range(1, len(v), 3)]
+        obj = scene / f"roundtrip_{k}.obj"
+        obj.write_text("\n".join(lines) + "\n")
+        bsdf = (bsdf_files or {}).get(name, export / "mitsuba" / f"bsdf_{name}.xml")
+        shapes[f"part{k}"] = {"type": "obj", "filename": str(obj), "face_normals": False,
+                              "bsdf": mi.load_file(str(bsdf))}
+    camera = json.loads((scene / "camera.json").read_text())
+    pose = json.loads((scene / "pose.json").read_text())
+    sc = mi.load_dict({"type": "scene", "emitter": mi.load_file(str(export / "mitsuba" / "emitter.xml")), **shapes,
+                       "integrator": {"type": "direct"}, "sensor": mitsuba_opencv_sensor(camera, pose, spp, seed)})
+    return np.array(mi.render(sc, spp=spp), dtype=np.float64)[..., :3]

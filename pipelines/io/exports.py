@@ -31,6 +31,8 @@ phi = 2 pi (c + 1/2) / W from +X towards +Y; world +Z up.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..light.cubemap import CubeMap, face_rectangle_solid_angle
@@ -332,11 +334,14 @@ def _phong_lobe(material) -> tuple[float, float, str]:
     return 4.0 * n, np.pi, f"the paper's unnormalised Phong n = {n:g} (a half-vector exponent of ~4n = {4 * n:g})"
 
 
-def material_mapping(material) -> dict:
+def material_mapping(material, light_scale: float | None = None) -> dict:
     """Our material as the parameters of Mitsuba 3's BSDF and Blender's Principled BSDF.
 
     Returns {"model", "exact": whether Mitsuba's BSDF is our model exactly, "mitsuba": {"type", ...
-    parameters}, "blender": {Principled BSDF input name: value, "distribution"}, "notes": [...]}."""
+    parameters}, "blender": {Principled BSDF input name: value, "distribution"}, "light_scale",
+    "raw_peak": the largest colour before that scale, "notes": [...]}. `light_scale`: the factor the
+    exported light carries and every colour is divided by (default: the largest colour, at least 1;
+    a scene of several parts passes the one they share, `parts_light_scale`)."""
     kd, ks = np.asarray(material.kd, np.float64), np.asarray(material.ks, np.float64)
     notes: list[str] = []
     if material.model == "lambert" or not material.specular:
@@ -385,18 +390,51 @@ def material_mapping(material) -> dict:
     # Mitsuba's RGB reflectances must be <= 1 (Blender's Base Color too): a larger colour (the light holds
     # the albedo's scale, README: Conventions) goes into the light, which the export then multiplies by s
     colours = [np.max(v) for k, v in mitsuba.items() if isinstance(v, list)] + [np.max(blender["Base Color"])]
-    scale = float(max(1.0, *colours))
-    if scale > 1.0:
+    peak = float(max(colours))
+    scale = float(max(1.0, peak)) if light_scale is None else float(light_scale)
+    if scale != 1.0:
         for k, v in mitsuba.items():
             if isinstance(v, list):
                 mitsuba[k] = (np.asarray(v) / scale).tolist()
         blender["Base Color"] = (np.asarray(blender["Base Color"]) / scale).tolist()
         blender["Specular IOR Level"] /= scale
-        notes.append(f"colours above 1 (the light holds the albedo's scale, README: Conventions): the material's "
+        why = ("colours above 1" if light_scale is None else
+               "the largest colour of the scene's parts (their textures included) above 1")
+        notes.append(f"{why} (the light holds the albedo's scale, README: Conventions): the material's "
                      f"colours are divided by {scale:.6g} and the exported light multiplied by it (emitter.xml's "
                      f"scale, setup_world.py's Background Strength): the render is the same")
     return {"model": material.model, "exact": exact, "blender_exact": blender_exact, "light_scale": scale,
-            "mitsuba": mitsuba, "blender": blender, "notes": notes}
+            "raw_peak": peak, "mitsuba": mitsuba, "blender": blender, "notes": notes}
+
+
+DIFFUSE_KEYS = ("reflectance", "diffuse_reflectance")  # the Mitsuba parameter a diffuse texture replaces
+
+
+def _diffuse_key(mitsuba: dict) -> str:
+    return next(k for k in DIFFUSE_KEYS if k in mitsuba)
+
+
+def texture_peak(material, texture: np.ndarray) -> float:
+    """The largest colour a textured part's export holds before the light scale: its BSDF's other
+    colours, and each channel's diffuse parameter (the mapping of kd = the part's multiplier) times
+    the texture's largest value in that channel."""
+    m = material_mapping(material, light_scale=1.0)
+    peaks = [float(np.max(v)) for k, v in m["mitsuba"].items() if isinstance(v, list) and k not in DIFFUSE_KEYS]
+    tex_max = np.asarray(texture, np.float64).reshape(-1, 3).max(axis=0)
+    peaks.append(float(np.max(np.asarray(m["mitsuba"][_diffuse_key(m["mitsuba"])]) * tex_max)))
+    peaks.append(float(np.max(np.asarray(m["blender"]["Base Color"]) * tex_max)))
+    return max(peaks)
+
+
+def textured_images(material, texture: np.ndarray, light_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Mitsuba's diffuse bitmap, Blender's Base Color image) of a textured part: the linear texture
+    times the part's diffuse parameter in each tool, over the shared light scale (float32, linear:
+    Mitsuba loads it raw, Blender as Linear Rec.709)."""
+    m = material_mapping(material, light_scale=light_scale)
+    t = np.asarray(texture, np.float32)
+    d = np.asarray(m["mitsuba"][_diffuse_key(m["mitsuba"])], np.float32)
+    b = np.asarray(m["blender"]["Base Color"], np.float32)
+    return t * d, t * b
 
 
 def _ior_of_f0(f0: float) -> float:
@@ -420,6 +458,10 @@ def _principled(base, alpha: float, ior: float, weight) -> dict:
 
 
 def _xml_value(name: str, value) -> str:
+    if isinstance(value, tuple) and value and value[0] == "bitmap":
+        return (f'<texture type="bitmap" name="{name}"><string name="filename" value="{value[1]}"/>'
+                f'<boolean name="raw" value="true"/><string name="filter_type" value="bilinear"/>'
+                f'<string name="wrap_mode" value="repeat"/></texture>')
     if isinstance(value, bool):
         return f'<boolean name="{name}" value="{str(value).lower()}"/>'
     if isinstance(value, str):
@@ -429,27 +471,36 @@ def _xml_value(name: str, value) -> str:
     return f'<float name="{name}" value="{float(value):.9g}"/>'
 
 
-def mitsuba_bsdf_xml(material, bsdf_id: str = "wavelight") -> str:
+def mitsuba_bsdf_xml(material, bsdf_id: str = "wavelight", light_scale: float | None = None,
+                     texture: str | None = None, note: str | None = None) -> str:
     """The material as a Mitsuba 3 BSDF element, a file `mi.load_file` loads by itself (its root
-    has version="3.0.0"; pasted into a shape, drop it, as for emitter.xml)."""
-    m = material_mapping(material)
+    has version="3.0.0"; pasted into a shape, drop it, as for emitter.xml). `texture`: a linear
+    bitmap (next to the file; `textured_images`) as the diffuse parameter instead of the RGB value."""
+    m = material_mapping(material, light_scale)
     p = dict(m["mitsuba"])
+    if texture is not None:
+        p[_diffuse_key(p)] = ("bitmap", texture)
     kind = p.pop("type")
     what = ("exactly wavelight's model" if m["exact"] else
             "an APPROXIMATION (no Mitsuba BSDF is this model)")
     lines = [f'<bsdf type="{kind}" id="{bsdf_id}" version="3.0.0">',
              f'    <!-- wavelight material: {material.model}; this BSDF is {what}.',
              '         Load this file (mi.load_file), or paste it into a <shape> (then drop version="3.0.0").']
-    lines += [f'         {note}'.replace("--", "-") for note in m["notes"] if not note.startswith("Blender")]
+    lines += [f'         {n}'.replace("--", "-") for n in m["notes"] if not n.startswith("Blender")]
+    if note:
+        lines.append(f"         {note}".replace("--", "-"))
     lines[-1] += " -->"
     lines += [f"    {_xml_value(k, v)}" for k, v in p.items()]
     lines.append("</bsdf>")
     return "\n".join(lines) + "\n"
 
 
-def blender_material_description(material) -> dict:
-    """material.json: the Principled BSDF's inputs, and the settings a user types in, in words."""
-    m = material_mapping(material)
+def blender_material_description(material, light_scale: float | None = None, parts=None) -> dict:
+    """material.json: the Principled BSDF's inputs, and the settings a user types in, in words.
+    `parts`: [(PartExport, Base Color image file name or None)]: one Principled BSDF per part too
+    ("parts"), each a material named as the part (setup_material.py rebuilds the one of that name,
+    e.g. the OBJ's usemtl material Blender imported, or makes it)."""
+    m = material_mapping(material, light_scale)
     b = m["blender"]
 
     def rgb(v):
@@ -464,11 +515,28 @@ def blender_material_description(material) -> dict:
              f"Specular > IOR Level: {b['Specular IOR Level']:.4g}",
              f"Specular > Tint: RGB {rgb(b['Specular Tint'])}",
              "Coat > Weight: 0; everything else at its default (Subsurface, Transmission, Sheen, Emission 0)"]
-    return {"format": "wavelight-blender-material-1", "name": "wavelight", "node": "ShaderNodeBsdfPrincipled",
-            "model": material.model, "exact": m["blender_exact"], "inputs": {k: v for k, v in b.items() if k != "distribution"},
-            "distribution": b["distribution"], "settings": steps, "notes": m["notes"],
-            "wavelight_material": material.to_json(),
-            "script": "setup_material.py (next to this file) makes this material on the active object"}
+    out = {"format": "wavelight-blender-material-1", "name": "wavelight", "node": "ShaderNodeBsdfPrincipled",
+           "model": material.model, "exact": m["blender_exact"], "inputs": {k: v for k, v in b.items() if k != "distribution"},
+           "distribution": b["distribution"], "settings": steps, "notes": m["notes"],
+           "wavelight_material": material.to_json(),
+           "script": "setup_material.py (next to this file) makes this material on the active object"}
+    if parts:
+        listed = []
+        for part, image in parts:
+            pm = material_mapping(part.material, light_scale)
+            inputs = {k: v for k, v in pm["blender"].items() if k != "distribution"}
+            colour = (f"Base Color: an Image Texture node with {image} (Color Space: Linear Rec.709, "
+                      "Interpolation Linear, Extension Repeat; the mesh's UVs) into Base Color" if image else
+                      f"Base Color: RGB {rgb(inputs['Base Color'])}")
+            listed.append({"name": part.name, "inputs": inputs, "distribution": pm["blender"]["distribution"],
+                           "base_color_image": image, "exact": pm["blender_exact"] and part.exact,
+                           "settings": [f"the material named {part.name!r} (the mesh's part): a Principled BSDF as "
+                                        "above, with", colour]})
+        out["parts"] = listed
+        out["script"] = ("setup_material.py (next to this file) makes one material per part, named as the part (it "
+                         "rebuilds an existing material of that name, e.g. the one the OBJ import made), and the "
+                         "material 'wavelight' on the active object when it has no part's material")
+    return out
 
 
 BLENDER_MATERIAL_SCRIPT = '''"""wavelight: the fitted material as a Blender material, on the active object.
@@ -477,7 +545,11 @@ BLENDER_MATERIAL_SCRIPT = '''"""wavelight: the fitted material as a Blender mate
 
 Reads material.json (next to this script): a Principled BSDF with the inputs listed there, in a
 material named "wavelight" (rerunning replaces its nodes), given to the active object (its first
-material slot). material.json's "settings" say the same in words, for typing them in by hand.
+material slot). A scene of several parts (material.json "parts") gets one material per part, named
+as the part: an existing material of that name (the one Blender's OBJ import made for the part's
+usemtl group) is rebuilt in place, so every face already using it follows; a textured part's Base
+Color is an Image Texture of its base_<part>.exr (next to this script). material.json's "settings"
+say the same in words, for typing them in by hand.
 """
 
 import json
@@ -500,12 +572,10 @@ def script_folder():
     raise RuntimeError("wavelight: cannot tell where setup_material.py is; run it from its file")
 
 
-def make_material(json_path=None):
-    """The material "wavelight" from material.json (a Principled BSDF -> Material Output)."""
-    json_path = json_path or os.path.join(script_folder(), JSON)
-    with open(json_path) as f:
-        desc = json.load(f)
-    mat = bpy.data.materials.get(desc["name"]) or bpy.data.materials.new(desc["name"])
+def build_material(name, distribution, inputs, image_path=None):
+    """The material `name` (made, or its nodes replaced): a Principled BSDF -> Material Output, with
+    an Image Texture (linear) into Base Color when `image_path` is given."""
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
     if mat.node_tree is None:  # Blender < 5 needs use_nodes for a tree
         mat.use_nodes = True
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
@@ -513,26 +583,64 @@ def make_material(json_path=None):
     bsdf = nodes.new("ShaderNodeBsdfPrincipled")
     out = nodes.new("ShaderNodeOutputMaterial")
     bsdf.location, out.location = (-300, 0), (100, 0)
-    bsdf.distribution = desc["distribution"]
-    inputs = dict(desc["inputs"])
+    bsdf.distribution = distribution
+    inputs = dict(inputs)
     if "Specular IOR Level" not in bsdf.inputs:  # Blender < 4: "Specular" 0.5 = F0 0.04, "Clearcoat"
         level = inputs.pop("Specular IOR Level")
         ior = inputs["IOR"]
         inputs["Specular"] = 2.0 * level * ((ior - 1) / (ior + 1)) ** 2 / 0.08
         inputs.pop("Specular Tint")
         inputs["Clearcoat"] = inputs.pop("Coat Weight")
-    for name, value in inputs.items():
-        socket = bsdf.inputs[name]
+    for key, value in inputs.items():
+        socket = bsdf.inputs[key]
         if isinstance(value, list) and len(socket.default_value) == 4:
             value = list(value) + [1.0]
         socket.default_value = value
+    if image_path is not None:
+        tex = nodes.new("ShaderNodeTexImage")
+        tex.location = (-700, 0)
+        tex.image = bpy.data.images.load(image_path, check_existing=True)
+        tex.image.colorspace_settings.name = "Linear Rec.709"
+        tex.interpolation, tex.extension = "Linear", "REPEAT"
+        links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
     links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     return mat
 
 
+def make_material(json_path=None):
+    """The material "wavelight" from material.json (a Principled BSDF -> Material Output)."""
+    json_path = json_path or os.path.join(script_folder(), JSON)
+    with open(json_path) as f:
+        desc = json.load(f)
+    return build_material(desc["name"], desc["distribution"], desc["inputs"])
+
+
+def make_part_materials(json_path=None):
+    """One material per part of material.json (none without parts), named as the part."""
+    json_path = json_path or os.path.join(script_folder(), JSON)
+    with open(json_path) as f:
+        desc = json.load(f)
+    folder = os.path.dirname(os.path.abspath(json_path))
+    made = []
+    for part in desc.get("parts", []):
+        image = part.get("base_color_image")
+        made.append(build_material(part["name"], part["distribution"], part["inputs"],
+                                   os.path.join(folder, image) if image else None))
+    return made
+
+
 def setup_material(obj=None, json_path=None):
-    mat = make_material(json_path)
+    parts = make_part_materials(json_path)
     obj = obj or bpy.context.view_layer.objects.active
+    if parts:
+        names = [m.name for m in parts]
+        used = [m.name for m in (getattr(obj.data, "materials", None) or []) if m is not None] if obj else []
+        print(f"wavelight: part materials {{names}}" + (
+            f" ({{len([n for n in names if n in used])}} of them on {{obj.name!r}})" if obj else "")
+            + "; give a part's faces its material where the mesh did not name it")
+        if obj is None or any(n in used for n in names) or not hasattr(obj.data, "materials"):
+            return parts
+    mat = make_material(json_path)
     if obj is None or not hasattr(obj.data, "materials"):
         print(f"wavelight: made material {{mat.name!r}}; no active object to give it to")
         return mat
@@ -551,3 +659,52 @@ if __name__ == "__main__":
 
 def blender_material_script() -> str:
     return BLENDER_MATERIAL_SCRIPT.format()
+
+
+# -- several parts (reflectance.json `parts`) --------------------------------------------------------
+# Each part's material is the scene's model with the part's diffuse colour: kd x its fitted scale x
+# its base (the .mtl / glTF colour of a plain part; the texture of a textured one, exported as a
+# linear bitmap: mitsuba/kd_<part>.exr, blender/base_<part>.exr, the texture times the part's diffuse
+# parameter in that tool). Every part shares one light, so one light scale covers all their colours.
+# A vertex-coloured part is exported with its mean colour (approximate: neither file format here
+# carries per-vertex colour).
+
+@dataclass
+class PartExport:
+    name: str
+    file_stem: str  # the part's name made safe for a file name
+    material: object  # the part's Material (a textured part's kd: the multiplier of its texture)
+    texture: np.ndarray | None  # (H, W, 3) linear texture (a textured part), else None
+    texture_name: str | None  # the source texture's file name
+    exact: bool  # its colour is the solve's per-pixel colour (False: a vertex-coloured part's mean)
+
+
+def part_exports(material, parts: list[dict], scene_parts=None) -> list[PartExport]:
+    """The parts of a reflectance.json as exports: `scene_parts` (pipelines.model.parts.SceneParts of
+    the scene's mesh) gives the textures; without it (or a part not found in it) a textured part
+    falls back to its mean colour."""
+    import re
+    from dataclasses import replace
+
+    by_name = {} if scene_parts is None else {p.name: p for p in scene_parts.parts}
+    out = []
+    for p in parts:
+        sp = by_name.get(p["name"])
+        tex = sp.texture if sp is not None and p.get("textured") else None
+        if tex is not None:
+            kd, pixels, exact = tuple(float(v) for v in p["scale"]), tex.levels[0], True
+        else:
+            kd, pixels, exact = tuple(float(v) for v in p["kd"]), None, not p.get("textured")
+        out.append(PartExport(p["name"], re.sub(r"[^A-Za-z0-9_.-]", "_", p["name"]), replace(material, kd=kd),
+                              pixels, p.get("texture") if tex is not None else None, exact))
+    return out
+
+
+def parts_light_scale(material, parts: list[PartExport]) -> float:
+    """The light scale every part's export shares: the largest colour of any part (a texture's largest
+    texel times its diffuse parameter), at least 1 and at least the scene material's own."""
+    peaks = [material_mapping(material)["light_scale"]]
+    for p in parts:
+        peaks.append(texture_peak(p.material, p.texture) if p.texture is not None else
+                     material_mapping(p.material, light_scale=1.0)["raw_peak"])
+    return float(max(1.0, *peaks))

@@ -11,7 +11,7 @@ from ..console import Console
 from ..outputs import write_json
 from ..scene import SceneFiles, material_from_options, require, solved_light
 
-VERSION = 5  # 5: mitsuba/bsdf_<part>.xml per part (reflectance.json parts); 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py;
+VERSION = 6  # 6: a textured part as a bitmap (mitsuba/kd_<part>.exr, blender/base_<part>.exr), one light scale for all parts, material.json parts; 5: mitsuba/bsdf_<part>.xml per part (reflectance.json parts); 3: Mitsuba rows on its own grid (2H + 1), emitter.xml loadable by itself, blender/setup_world.py;
 # 4: the fitted material too: mitsuba/bsdf.xml, blender/material.json + setup_material.py
 FORMATS = ("mitsuba", "blender", "opengl")
 
@@ -59,7 +59,9 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                     target = cubemap.CubeMap(face_size, cube.hemisphere)
                     texels, cube = cubemap.resample_cube(texels, cube, target), target
             outputs: list[Path] = []
-            mapping = ex.material_mapping(material) if material is not None else None
+            parts = _parts(scene, material, material_path) if material is not None else []
+            shared = ex.parts_light_scale(material, parts) if parts else None  # one light for every part
+            mapping = ex.material_mapping(material, shared) if material is not None else None
             scale = mapping["light_scale"] if mapping else 1.0
             omega = cubemap.latlong_solid_angles(env.shape[0])[..., None]
             summary = {"source": "recovered" if light_path is None else str(light_path),
@@ -74,9 +76,9 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                 if material is not None:
                     bsdf = out / "mitsuba" / "bsdf.xml"
                     with atomic_output(bsdf) as tmp:
-                        tmp.write_text(ex.mitsuba_bsdf_xml(material))
+                        tmp.write_text(ex.mitsuba_bsdf_xml(material, light_scale=shared))
                     outputs.append(bsdf)
-                    outputs += _part_bsdfs(out / "mitsuba", material, material_path, summary)
+                    outputs += _part_bsdfs(out / "mitsuba", parts, scale, summary)
             if "blender" in formats:
                 outputs.append(images.write_exr(out / "blender" / "light_equirect.exr", ex.to_blender(env)))
                 script = out / "blender" / "setup_world.py"
@@ -84,7 +86,16 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                     tmp.write_text(ex.blender_world_script("light_equirect.exr", scale))
                 outputs.append(script)
                 if material is not None:
-                    outputs.append(write_json(out / "blender" / "material.json", ex.blender_material_description(material)))
+                    images_of = []
+                    for part in parts:
+                        name = None
+                        if part.texture is not None:
+                            name = f"base_{part.file_stem}.exr"
+                            outputs.append(images.write_exr(out / "blender" / name,
+                                                            ex.textured_images(part.material, part.texture, scale)[1]))
+                        images_of.append((part, name))
+                    outputs.append(write_json(out / "blender" / "material.json",
+                                              ex.blender_material_description(material, shared, images_of)))
                     script = out / "blender" / "setup_material.py"
                     with atomic_output(script) as tmp:
                         tmp.write_text(ex.blender_material_script())
@@ -92,7 +103,7 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
             if "opengl" in formats:
                 for name, face in ex.to_gl_faces(texels, cube).items():
                     outputs.append(images.write_exr(out / "opengl" / f"{name}.exr", face))
-            parts = summary.pop("parts", None)
+            listed = summary.pop("parts", None)
             if mapping is not None:
                 summary["material"] = {
                     "source": cache.relative(material_path), "model": material.model,
@@ -106,8 +117,8 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                         "files": ["blender/material.json", "blender/setup_material.py"], "exact": mapping["blender_exact"],
                         "what": "a Principled BSDF: its inputs and the settings in words (material.json); "
                                 "setup_material.py makes it on the active object"}
-                if parts:
-                    summary["material"]["parts"] = parts
+                if listed:
+                    summary["material"]["parts"] = listed
             else:
                 summary["material"] = {"source": None, "note": "no material: run wavelight solve (out/reflectance.json) "
                                                                "or pass --material to export one"}
@@ -115,6 +126,9 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
                 **summary, "files": [cache.relative(p) for p in outputs],
                 "what": {"mitsuba/light.exr, mitsuba/emitter.xml": "the light as Mitsuba 3's envmap",
                          "mitsuba/bsdf.xml": "the material as a Mitsuba 3 BSDF",
+                         "mitsuba/bsdf_<part>.xml, mitsuba/kd_<part>.exr": "each part's BSDF (a textured part's "
+                                                                           "diffuse parameter as a linear bitmap)",
+                         "blender/base_<part>.exr": "a textured part's Base Color image (linear)",
                          "blender/light_equirect.exr, blender/setup_world.py": "the light as Blender's World",
                          "blender/material.json, blender/setup_material.py": "the material as a Principled BSDF",
                          "opengl/*.exr": "the light as OpenGL / three.js cube faces"},
@@ -133,38 +147,55 @@ def export_stage(scene: SceneFiles, formats: tuple[str, ...], light_path: Path |
     return d
 
 
-def _part_bsdfs(folder: Path, material, material_path, summary: dict) -> list[Path]:
-    """One Mitsuba BSDF per part (mitsuba/bsdf_<part>.xml) when the material is a reflectance.json
-    with parts: the scene's model with the part's kd. A textured part's file holds its mean kd and
-    names its texture and fitted scale in a comment (Mitsuba's bitmap x that scale is the exact one;
-    not written here). Records the parts in summary["parts"]."""
+def _parts(scene: SceneFiles, material, material_path):
+    """The parts of the solve's reflectance.json (pipelines.io.exports.part_exports), their textures
+    from the scene's mesh as the solve read them; [] for one uniform material."""
     import json
-    import re
-    from dataclasses import replace
 
     from pipelines.io import exports as ex
-    from pipelines.io.files import atomic_output
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model.parts import scene_parts
 
     try:
         refl = json.loads(Path(material_path).read_text()) if material_path is not None else {}
     except (OSError, ValueError):
         refl = {}
-    parts = refl.get("parts") if isinstance(refl, dict) else None
-    if not parts:
+    listed = refl.get("parts") if isinstance(refl, dict) else None
+    if not listed:
         return []
+    sp = None
+    if any(p.get("textured") for p in listed):
+        o = refl.get("parts_options", {})
+        sp = scene_parts(load_mesh(scene.mesh), scene.mesh, scene.root, o.get("texture", True),
+                         o.get("texture_colour", False))
+    return ex.part_exports(material, listed, sp)
+
+
+def _part_bsdfs(folder: Path, parts, light_scale: float, summary: dict) -> list[Path]:
+    """One Mitsuba BSDF per part (mitsuba/bsdf_<part>.xml): the scene's model with the part's colour,
+    a textured part's as a linear bitmap (mitsuba/kd_<part>.exr: its texture times its diffuse
+    parameter), all under the light scale they share. Records the parts in summary["parts"]."""
+    from pipelines.io import exports as ex
+    from pipelines.io import images
+    from pipelines.io.files import atomic_output
+
     written, listed = [], []
     for p in parts:
-        kd = tuple(min(float(v), 1.0) for v in p["kd"])
-        xml = ex.mitsuba_bsdf_xml(replace(material, kd=kd))
-        note = (f"<!-- part {p['name']}: kd = mean over its surface"
-                + (f"; exactly: texture {p['texture']} (sRGB bitmap) x scale {p['scale']}" if p.get("texture") else "")
-                + " -->\n")
-        xml = xml.replace("?>\n", "?>\n" + note, 1) if xml.startswith("<?xml") else note + xml
-        path = folder / f"bsdf_{re.sub(r'[^A-Za-z0-9_.-]', '_', p['name'])}.xml"
+        texture = None
+        if p.texture is not None:
+            texture = f"kd_{p.file_stem}.exr"
+            written.append(images.write_exr(folder / texture, ex.textured_images(p.material, p.texture, light_scale)[0]))
+            note = f"part {p.name}: its texture {p.texture_name} (linear, x its fitted scale) as {texture}"
+        elif not p.exact:
+            note = f"part {p.name}: APPROXIMATE: its mean colour over its surface (its vertex colours are not exported)"
+        else:
+            note = f"part {p.name}"
+        path = folder / f"bsdf_{p.file_stem}.xml"
         with atomic_output(path) as tmp:
-            tmp.write_text(xml)
+            tmp.write_text(ex.mitsuba_bsdf_xml(p.material, f"wavelight_{p.file_stem}", light_scale, texture, note))
         written.append(path)
-        listed.append({"name": p["name"], "file": f"mitsuba/{path.name}", "kd": list(kd), "texture": p.get("texture"),
-                       "scale": p.get("scale"), "exact": not p.get("texture")})
+        listed.append({"name": p.name, "file": f"mitsuba/{path.name}", "kd": list(p.material.kd),
+                       "texture": p.texture_name, "bitmap": f"mitsuba/{texture}" if texture else None,
+                       "scale": list(p.material.kd) if texture else None, "exact": p.exact})
     summary["parts"] = listed
     return written
