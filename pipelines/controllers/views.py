@@ -188,7 +188,9 @@ def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.nda
     held_relit = None
     if held_light is not None and len(held_rows):
         held_relit = np.zeros_like(values)
-        held_relit[held_rows] = render(subset(result.vis, held_rows), held_light, result.material)
+        a = getattr(result, "albedo", None)  # the parts' per-pixel albedo (their fitted scales)
+        held_relit[held_rows] = render(subset(result.vis, held_rows), held_light, result.material,
+                                       albedo=None if a is None else a.values(held_rows))
     out = {}
     for k, name in enumerate(layout.names):
         sl = layout.rows(k)
