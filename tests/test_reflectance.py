@@ -223,6 +223,34 @@ def test_alternation_rounds_lower_the_error_and_stop(alternated):
     assert result.summary()["rounds"][1]["lm"]["evaluations"] > 0
 
 
+def test_heads_for_extrapolates_a_shrinking_decrease():
+    from types import SimpleNamespace as R
+
+    rounds = [R(held_out_rmse=e, fit_rmse=0.0) for e in (0.224, 0.153, 0.127)]
+    assert rf._heads_for(rounds) == pytest.approx(0.127 - 4 * 0.026)  # the ratio 0.37 floored at 0.8
+    rounds = [R(held_out_rmse=e, fit_rmse=0.0) for e in (0.2, 0.1, 0.015)]
+    assert rf._heads_for(rounds) == pytest.approx(0.015 - 0.085 * 0.85 / 0.15)  # its own ratio 0.85
+    assert rf._heads_for(rounds[:2]) is None  # two rounds: one step, no ratio
+    assert rf._heads_for([R(held_out_rmse=e, fit_rmse=0.0) for e in (0.3, 0.2, 0.11)]) is None  # steps not shrinking
+    assert rf._heads_for([R(held_out_rmse=e, fit_rmse=0.0) for e in (0.3, 0.2, 0.21)]) == 0.2  # it rose: the best
+    # no held-out pixels: the fit error
+    assert rf._heads_for([R(held_out_rmse=None, fit_rmse=e) for e in (0.3, 0.2, 0.21)]) == 0.2
+
+
+def test_a_trailing_candidate_stops_when_it_cannot_win(glossy, alternated):
+    """`beat`: the same alternation stops early (not before its 3rd LM round) once its error heads
+    above another candidate's (here: half what it reaches), saying so; and runs as without it when
+    it can nearly tie (the other's error 2 % above what it reaches: within the margin)."""
+    full, _ = alternated
+    reached = min(r.held_out_rmse for r in full.rounds)
+    result = rf.alternate(glossy.vis, glossy.photo, start_from(0.8, 60.0), glossy.solve_light,
+                          held_out=glossy.held, beat=0.5 * reached)
+    assert "heads for" in result.decision and 4 <= len(result.rounds) < len(full.rounds), result.decision
+    same = rf.alternate(glossy.vis, glossy.photo, start_from(0.8, 60.0), glossy.solve_light,
+                        held_out=glossy.held, beat=1.02 * reached)
+    assert len(same.rounds) == len(full.rounds) and "heads for" not in same.decision
+
+
 # -- auto: the simplest model the data support ------------------------------------------------------
 @pytest.mark.parametrize("with_plastic", [False, True])
 def test_auto_stays_lambertian_on_a_diffuse_scene(vis16, with_plastic):

@@ -39,6 +39,8 @@ from .render import KERNEL_ROWS, lobe_norm, specular_factors, transport
 SHININESS_RANGE = (0.5, 20000.0)  # a fitted n outside this is no specular lobe we can resolve
 SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart scan over n
 ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by less than this
+RHO_FLOOR = 0.8  # `_heads_for`: the remaining decrease taken as at least 4x the last step
+BEAT_MARGIN = 0.05  # a trailing auto candidate stops once its error heads for this much above the leader's
 MAX_PAIRS = 48_000_000  # (pixel, lit texel) pairs held for the LM (2 float32 arrays: ~400 MB)
 LIT_TOL = 0.0  # texels whose light is exactly zero (all channels) add nothing and are skipped
 _CHUNK = 4096  # pixel rows per evaluation chunk (keeps temporaries small)
@@ -520,7 +522,7 @@ def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
 def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
               use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
               max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None, first=None,
-              albedo=None) -> Reflectance:
+              albedo=None, beat: float | None = None) -> Reflectance:
     """Light under `start` (or `first`, its (solution, context) already solved) -> LM -> light -> ...
     until a round lowers the all-pixel RMSE by < tol.
 
@@ -528,6 +530,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
     (default: an evenly spread subset of the used pixels, `specular_data`). `albedo`: None, or a
     callable giving the current (P, 3) per-pixel relative albedo (the light solve may refit it).
+    `beat`: another candidate's held-out error (`select`): the alternation stops as soon as its own
+    held-out error heads for more than BEAT_MARGIN above it (`_heads_for`), as it cannot win.
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
@@ -563,10 +567,38 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
             kept[:k] = [None] * k  # only the best round's light is kept (memory)
         if previous - rounds[k].fit_rmse < tol * previous and not (jumped and rounds[k].fit_rmse >= previous):
             break  # (a jump that overshot gets one more round: its LM corrects it)
+        # (not before round 3: the first rounds' steps tell little of the later ones, which
+        # `_extrapolate`'s jumps speed up)
+        limit = _heads_for(rounds) if beat is not None and k >= 3 else None
+        if limit is not None and limit > beat * (1.0 + BEAT_MARGIN):
+            sol, ctx = kept[best]
+            return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
+                               f"alternation stopped after {k} LM round(s): its held-out error heads for "
+                               f"{100 * limit:.3f} % (geometric), above the other candidate's {100 * beat:.3f} %",
+                               seconds=time.perf_counter() - t0)
     sol, ctx = kept[best]
     return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
                        f"alternation stopped after {len(rounds) - 1} LM round(s); round {best} has the lowest error",
                        seconds=time.perf_counter() - t0)
+
+
+def _heads_for(rounds) -> float | None:
+    """Where the rounds' held-out errors (fit errors without held-out pixels) are heading, at the
+    lowest: the lowest so far when the last round did not lower it; else, when the last two steps
+    shrink (ratio rho < 0.9), the limit of a geometric series of the last step d, e - d r / (1 - r)
+    with r = max(rho, RHO_FLOOR) (one ratio says little: `_extrapolate`'s jumps make a step large
+    and the next small, then the steps go on); None while it cannot tell (fewer than three rounds,
+    a step that did not shrink)."""
+    if len(rounds) < 3:
+        return None
+    e = [r.held_out_rmse if r.held_out_rmse is not None else r.fit_rmse for r in rounds[-3:]]
+    d_prev, d = e[0] - e[1], e[1] - e[2]
+    if d <= 0:
+        return min(r.held_out_rmse if r.held_out_rmse is not None else r.fit_rmse for r in rounds)
+    if d_prev <= 0 or d / d_prev >= 0.9:
+        return None
+    rho = max(d / d_prev, RHO_FLOOR)
+    return e[2] - d * rho / (1.0 - rho)
 
 
 def _now(albedo):
@@ -733,13 +765,15 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     for e1, name, material, first, seconds in runs:
         offset = len(rounds)
         shifted = (lambda r, o=offset: progress(replace(r, index=r.index + o))) if progress else None
+        # a trailing candidate stops once it heads above the best so far (it cannot be chosen)
+        beat = min(r[0] for r in results) if results else None
         spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
-                         rows=rows, first=first, albedo=albedo)
+                         rows=rows, first=first, albedo=albedo, beat=beat)
         spec.rounds[0].light_seconds = seconds
         best = spec.rounds[spec.chosen_round]
         e = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse
         candidates[name].update({"held_out_rmse": best.held_out_rmse, "fit_rmse": best.fit_rmse,
-                                 "material": best.material.to_json()})
+                                 "material": best.material.to_json(), "alternation": spec.decision})
         results.append((e, name, spec, offset))
         rounds += [replace(r, index=r.index + offset) for r in spec.rounds]
     e, name, spec, offset = min(results, key=lambda t: t[0])
