@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 from ..light.bases import COMPARE_RUNS
 from ..model.materials import Material
-from .solve import Progress, SolveOptions, _Systems, prepare_photo, recast_bright
+from .solve import Progress, SolveOptions, _Systems, bright_texels, prepare_photo, recast_bright
 
 COLUMNS = {"fit_rmse": "relative RMSE over the fit pixels at the chosen level",
            "held_out_rmse": "relative RMSE over the held-out pixels (not fitted)",
@@ -43,7 +43,10 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
         o = options.light
         first = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
                             o.sh_nonnegative)
-        _, ne, _ = recast_bright(systems, backend, first, ne, material, o, progress, resolve=False)
+        texels = bright_texels(first.light, systems.vis.cube)
+        if len(texels):
+            ne = None  # (its transport rows go before the recast builds new ones)
+            _, ne = recast_bright(systems, backend, texels, material, o, progress, resolve=False)
     observability, unobservable = ls.observability(ne)
     rows, lights = [], []
     for basis, variant in COMPARE_RUNS:

@@ -283,27 +283,25 @@ class _Systems:
             self.held_rows = TransportRows(self.vis, self.held_sample.rows)
 
 
-def recast_bright(systems: _Systems, backend, sol, system, material: Material, light_options: LightOptions,
+def recast_bright(systems: _Systems, backend, texels: np.ndarray, material: Material, light_options: LightOptions,
                   progress: Progress, resolve: bool = True):
-    """Cast the directions that carry much of `sol`'s light exactly for every pixel (the visibility
-    was inferred there from neighbours) and solve the light again on the corrected system, levels
-    chosen afresh, so the report's levels and errors are all of the system the light is solved on.
-    Returns (solution, system, recast texels), the solution None unless `resolve`; all unchanged
-    when no direction needs it."""
+    """Cast `texels` (`bright_texels` of a light: the directions that carry much of it) exactly for
+    every pixel (the visibility was inferred there from neighbours) and solve the light again on
+    the corrected system, levels chosen afresh, so the report's levels and errors are all of the
+    system the light is solved on. Returns (solution, system), the solution None unless `resolve`.
+    The caller drops its old system first: its transport rows are as large as the new ones (~1 GB
+    at R = 32 for a glossy material), and both need not be held at once."""
     from ..light import bases
 
-    texels = bright_texels(sol.light, systems.vis.cube)
-    if not len(texels):
-        return sol, system, texels
     progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
     systems.recast(backend, texels)
     system = systems.system(material)
     if not resolve:
-        return None, system, texels
+        return None, system
     o = light_options
     sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
                       o.sh_order, o.sh_nonnegative)
-    return sol, system, texels
+    return sol, system
 
 
 def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
@@ -561,7 +559,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         result.solution, result.context = sol, system
     recast = np.zeros(0, np.int64)
     if adaptive and backend is not None:
-        sol, system, recast = recast_bright(systems, backend, sol, system, material, light_options, progress)
+        recast = bright_texels(sol.light, systems.vis.cube)
+        if len(recast):
+            result.context = system = None  # the old transport rows go before the recast builds new ones
+            sol, system = recast_bright(systems, backend, recast, material, light_options, progress)
     observability, unobservable = ls.observability(system)
     relit = render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
     versus = versus_photo(relit, values, usable)

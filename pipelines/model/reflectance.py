@@ -760,15 +760,19 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     if note and len(tried) > 1:
         note("reflectance candidates (held-out error under each one's first light): " + ", ".join(
             f"{name} {100 * e1:.3f} %" for e1, name, *_ in tried) + f"; alternating {', '.join(r[1] for r in runs)}")
+    tried.clear()  # (the candidates not alternated: their systems are not needed any more: memory)
+    t = None
     rounds = [r0]  # then the alternations' rounds (the probes are in candidates)
     results = []
-    for e1, name, material, first, seconds in runs:
+    while runs:
+        e1, name, material, first, seconds = runs.pop(0)  # (popped: an alternated run's first system goes)
         offset = len(rounds)
         shifted = (lambda r, o=offset: progress(replace(r, index=r.index + o))) if progress else None
         # a trailing candidate stops once it heads above the best so far (it cannot be chosen)
         beat = min(r[0] for r in results) if results else None
         spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
                          rows=rows, first=first, albedo=albedo, beat=beat)
+        first = None
         spec.rounds[0].light_seconds = seconds
         best = spec.rounds[spec.chosen_round]
         e = best.held_out_rmse if best.held_out_rmse is not None else best.fit_rmse
@@ -776,6 +780,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
                                  "material": best.material.to_json(), "alternation": spec.decision})
         results.append((e, name, spec, offset))
         rounds += [replace(r, index=r.index + offset) for r in spec.rounds]
+        for other in sorted(results, key=lambda t: t[0])[1:]:
+            other[2].context = None  # a losing alternation's system (its transport rows: memory)
     e, name, spec, offset = min(results, key=lambda t: t[0])
     gain = 1.0 - e / base if base else 0.0
     others = "; ".join(f"{n} {100 * x:.3f} %" for x, n, *_ in results if n != name)
