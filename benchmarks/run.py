@@ -13,6 +13,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -593,18 +594,36 @@ SECTIONS = {"visibility": visibility_section, "solve": solve_section, "reflectan
             "materials": materials_section}
 
 
+TITLES = {"visibility": "Visibility throughput", "solve": "Light solve", "reflectance": "Reflectance (",
+          "peer": "Peer:", "bases": "Bases and levels", "scaling": "Scaling", "e2e": "Whole solve",
+          "materials": "Glossy materials"}  # how each section's heading starts (its function's first line)
+
+
 def _existing_sections(path: Path) -> dict[str, str]:
-    """'## ' sections of an earlier RESULTS.md by their first word after the issue title."""
+    """'## ' sections of an earlier RESULTS.md by how their heading starts (`TITLES`: "solve" must
+    not take "Whole solve", the e2e section's heading)."""
     if not path.is_file():
         return {}
     parts = path.read_text().split("\n## ")[1:]
     found = {}
     for part in parts:
-        title = part.splitlines()[0].lower()
-        for name in SECTIONS:
-            if name in title:
+        title = part.splitlines()[0]
+        for name, start in TITLES.items():
+            if title.startswith(start):
                 found[name] = "## " + part.rstrip() + "\n"
     return found
+
+
+NOT_RERUN = re.compile(r"\*Not rerun by this run \(`--only`\): measured by the run of ([^.]*)\.\*\n*")
+
+
+def _not_rerun(rest: str, previous: str) -> str:
+    """A kept section's text under one line that says when it was measured: the date it already
+    carries (kept by an earlier --only run: its oldest such line, the run that measured it), else
+    the previous file's date."""
+    dates = NOT_RERUN.findall(rest)
+    when = dates[-1] if dates else previous
+    return f"*Not rerun by this run (`--only`): measured by the run of {when}.*\n\n" + NOT_RERUN.sub("", rest).lstrip("\n")
 
 
 def main():
@@ -625,7 +644,7 @@ def main():
     for name, section in SECTIONS.items():
         if args.only and name not in args.only and name in kept:
             title, _, rest = kept[name].partition("\n")
-            body += [f"{title}\n\n*Not rerun by this run (`--only`): measured by the run of {old}.*\n{rest}"]
+            body += [f"{title}\n\n{_not_rerun(rest, old)}"]
         else:
             body += section(args.repeats) + [""]
     goals = [line for part in body for line in part.splitlines() if line.startswith("**Goal**")]
@@ -633,7 +652,8 @@ def main():
     header += [f"Load average (1 / 5 / 15 min) at the start {' / '.join(f'{x:.1f}' for x in load_start)}, at the end "
                f"{' / '.join(f'{x:.1f}' for x in load_end)} (a value above the 2 cores means other work shared the "
                "machine: absolute times are inflated; the ratios, measured interleaved, much less).", ""]
-    summary = ["## Goals tracked", "", "Each line is repeated from its section below, measured in this run.", ""]
+    summary = ["## Goals tracked", "", "Each line is repeated from its section below (a section not rerun by this "
+               "run says when it was measured).", ""]
     summary += [f"- {g[len('**Goal** '):]}" for g in goals] + [""]
     args.out.write_text("\n".join(header + summary + body).rstrip() + "\n")
     print(f"wrote {args.out}")
