@@ -338,3 +338,86 @@ def test_glb_primitives_materials_and_base_colour_texture(tmp_path):
     assert by_name["spot"].texture is not None and by_name["ground"].texture is None
     assert by_name["ground"].kd == pytest.approx((0.35, 0.45, 0.6), abs=0.003)  # glTF's factor, 8 bits here
     assert pm.part_mean_base(sp, mesh, sp.names.index("spot")) == pytest.approx([0.7894, 0.6414, 0.5785], rel=0.01)
+
+
+def _ply_with_labels(src_obj: Path, dst: Path, prop: str = "label") -> Path:
+    """The OBJ scene as one binary PLY (trimesh's export): the same vertices, normals and UVs, each
+    face's part as an integer face property `prop` (0 the ground, 1 Spot: the OBJ's part order)."""
+    import trimesh
+
+    parts = trimesh.load(src_obj, process=False).dump()
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+    mesh = trimesh.Trimesh(np.concatenate([p.vertices for p in parts]),
+                           np.concatenate([p.faces + o for p, o in zip(parts, offsets)]),
+                           vertex_normals=np.concatenate([p.vertex_normals for p in parts]), process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=np.concatenate([p.visual.uv for p in parts])))
+    mesh.face_attributes[prop] = np.concatenate([np.full(len(p.faces), k, np.int32) for k, p in enumerate(parts)])
+    dst.write_bytes(trimesh.exchange.ply.export_ply(mesh, vertex_normal=True, include_attributes=True))
+    return dst
+
+
+def test_ply_face_labels_are_parts(tmp_path):
+    """A PLY's integer face label is one part per value (`label_0`, `label_1`), with the OBJ's own
+    geometry; materials.toml gives each its colour and texture by that name, and the parts are then
+    the OBJ's: the same faces, start colour and texture mean over Spot's surface."""
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model import parts as pm
+
+    obj = load_mesh(SUN / "mesh.obj")
+    ply = load_mesh(_ply_with_labels(SUN / "mesh.obj", tmp_path / "mesh.ply"))
+    assert ply.part_names == ("label_0", "label_1")
+    assert np.array_equal(ply.faces, obj.faces) and np.allclose(ply.vertices, obj.vertices, atol=1e-6)
+    assert np.allclose(ply.vertex_normals, obj.vertex_normals, atol=1e-5)
+    assert np.array_equal(ply.face_part, obj.face_part)  # ground 0, spot 1 in both
+    assert np.allclose(ply.face_uv, obj.face_uv, atol=1e-6)
+    shutil.copy(SUN / "spot_texture.png", tmp_path)
+    (tmp_path / "materials.toml").write_text('[parts.label_0]\nkd = [0.35, 0.45, 0.6]\n\n'
+                                             '[parts.label_1]\ntexture = "spot_texture.png"\n')
+    sp = pm.scene_parts(ply, tmp_path / "mesh.ply", tmp_path)
+    by_name = {p.name: p for p in sp.parts}
+    assert by_name["label_0"].faces == 20000 and by_name["label_1"].faces == 5856
+    assert by_name["label_0"].kd == pytest.approx((0.35, 0.45, 0.6)) and by_name["label_0"].texture is None
+    assert pm.part_mean_base(sp, ply, sp.names.index("label_1")) == pytest.approx([0.7894, 0.6414, 0.5785], rel=0.01)
+    # a texture the header names is every part's (the parts share the file's one UV map)
+    data = (tmp_path / "mesh.ply").read_bytes()
+    (tmp_path / "named.ply").write_bytes(data.replace(b"\nelement vertex", b"\ncomment TextureFile spot_texture.png"
+                                                                         b"\nelement vertex", 1))
+    named = load_mesh(tmp_path / "named.ply")
+    assert named.part_names == ("label_0", "label_1") and all(m["image"] is not None for m in named.part_materials)
+    assert all(m["image"] is None for m in ply.part_materials)  # none named: trimesh's placeholder is dropped
+
+
+def test_ply_other_face_properties_are_not_parts(tmp_path):
+    """An integer face property that is not a label (MeshLab's `flags`) leaves the PLY one uniform
+    material (its UVs name no texture: trimesh's placeholder image is not one); a `material_index`
+    is read like `label`."""
+    from pipelines.io.scene_files import load_mesh
+    from pipelines.model import parts as pm
+
+    flags = load_mesh(_ply_with_labels(SUN / "mesh.obj", tmp_path / "flags.ply", "flags"))
+    assert len(flags.part_names) <= 1 and not any(n.startswith("flags") for n in flags.part_names)
+    assert pm.scene_parts(flags, tmp_path / "flags.ply", tmp_path) is None
+    m = load_mesh(_ply_with_labels(SUN / "mesh.obj", tmp_path / "mi.ply", "material_index"))
+    assert m.part_names == ("material_index_0", "material_index_1")
+    assert np.bincount(m.face_part).tolist() == [20000, 5856]
+
+
+def test_ply_labels_solve_like_the_obj(tmp_path):
+    """The whole solve (R = 4, lambert) from the labelled PLY and materials.toml recovers the same
+    ground-to-Spot albedo ratio as from the OBJ and its .mtl."""
+    ratios = {}
+    for kind in ("obj", "ply"):
+        scene = _copy(SUN, tmp_path / kind)
+        if kind == "ply":
+            _ply_with_labels(scene / "mesh.obj", scene / "mesh.ply")
+            for name in ("mesh.obj", "mesh.mtl"):
+                (scene / name).unlink()
+            (scene / "materials.toml").write_text('[parts.label_0]\nkd = [0.35, 0.45, 0.6]\n\n'
+                                                  '[parts.label_1]\ntexture = "spot_texture.png"\n')
+        r = invoke(scene, "solve", "-R", "4", "--reflectance", "lambert")
+        assert r.exit_code == 0, r.output
+        parts = {p["name"]: p for p in json.loads((scene / "out" / "reflectance.json").read_text())["parts"]}
+        ground = parts["ground" if kind == "obj" else "label_0"]
+        ratios[kind] = np.array(ground["relative_to_reference"])
+    assert ratios["ply"] == pytest.approx(ratios["obj"], rel=0.005)
+    assert np.all(ratios["obj"] > 0.2)

@@ -16,7 +16,7 @@ class Mesh:
     faces: np.ndarray  # (F, 3) int64
     vertex_normals: np.ndarray  # (V, 3) float64 unit
     notes: tuple[str, ...] = ()
-    # the parts the file carries (OBJ usemtl groups, glTF primitives' materials): their names, each
+    # the parts the file carries (OBJ usemtl groups, glTF primitives' materials, PLY face labels): their names, each
     # face's part index, each face corner's UV (NaN where the part has none) and vertex colour
     # (linear RGB; None when the file has none); `part_materials`: what the file says of each part
     # (`parts.FileMaterial`). Empty / None for a file without parts.

@@ -198,7 +198,9 @@ def load_mesh(path: str | Path) -> Mesh:
         raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
                          f" of {len(vertices)}", path, "repair or re-export the mesh")
     normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
-    names, face_part, face_uv, face_colour, materials = _file_parts(parts, faces)
+    # a PLY with UVs but no `comment TextureFile` gets a grey placeholder image from trimesh: not a texture
+    images = path.suffix.lower() != ".ply" or _ply_names_texture(path)
+    names, face_part, face_uv, face_colour, materials = _file_parts(parts, faces, images)
     notes = []
     if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
         with open(path, "rb") as f:
@@ -238,21 +240,23 @@ def load_mesh(path: str | Path) -> Mesh:
     return Mesh(vertices, faces, normals, tuple(notes), names, face_part, face_uv, face_colour, materials)
 
 
-def _file_parts(parts: list, faces: np.ndarray):
+def _file_parts(parts: list, faces: np.ndarray, images: bool = True):
     """The parts the file carries, from trimesh's geometries (one per OBJ `usemtl` group or glTF
-    primitive): (names, face part index, face-corner UVs, face-corner linear vertex colours, what
-    the file says of each part's material: {"kd", "image", "source"}). All empty / None when the
-    file names no material and has no UVs or vertex colours (one uniform part: today's model)."""
+    primitive; a PLY's face labels, `PLY_LABELS`, split a geometry into one part per value): (names,
+    face part index, face-corner UVs, face-corner linear vertex colours, what the file says of each
+    part's material: {"kd", "image", "source"}). All empty / None when the file names no material,
+    has no face labels and has no UVs or vertex colours (one uniform part: today's model). `images`
+    False: the file names no texture (its materials' images are the loader's placeholders)."""
     from .images import srgb_to_linear
 
     names: list[str] = []
     materials: list[dict] = []
     per_face, uvs, colours = [], [], []
     any_uv = any_colour = False
+    labelled = False
     for k, m in enumerate(parts):
         visual = getattr(m, "visual", None)
         mat = getattr(visual, "material", None)
-        name = getattr(mat, "name", None) or m.metadata.get("name") or f"part{k}"
         info = {"kd": None, "image": None, "source": ""}
         if mat is not None:
             if hasattr(mat, "baseColorFactor") or hasattr(mat, "baseColorTexture"):  # glTF PBR
@@ -263,12 +267,24 @@ def _file_parts(parts: list, faces: np.ndarray):
                     info["kd"] = tuple(float(v) for v in f)
                 if getattr(mat, "baseColorTexture", None) is not None:
                     info["image"], info["source"] = mat.baseColorTexture, "glTF baseColorTexture"
-            elif getattr(mat, "image", None) is not None:
+            elif images and getattr(mat, "image", None) is not None:
                 info["image"], info["source"] = mat.image, "texture"
-        if name not in names:
-            names.append(name)
-            materials.append(info)
-        per_face.append(np.full(len(m.faces), names.index(name), np.int32))
+        labels = _ply_face_labels(m)
+        if labels is None:
+            label_names = [getattr(mat, "name", None) or m.metadata.get("name") or f"part{k}"]
+        else:  # a PLY's face labels: one part per value, named <property>_<value>, each with the file's texture
+            labelled = True
+            prop, values = labels
+            label_names = [f"{prop}_{int(v)}" for v in np.unique(values)]
+        for name in label_names:
+            if name not in names:
+                names.append(name)
+                materials.append(dict(info))
+        if labels is None:
+            per_face.append(np.full(len(m.faces), names.index(label_names[0]), np.int32))
+        else:
+            unique = np.unique(values)
+            per_face.append(np.array([names.index(n) for n in label_names], np.int32)[np.searchsorted(unique, values)])
         uv = getattr(visual, "uv", None)
         f = np.asarray(m.faces, np.int64)
         if uv is not None and len(uv) == len(m.vertices):
@@ -283,7 +299,41 @@ def _file_parts(parts: list, faces: np.ndarray):
         else:
             colours.append(np.full((len(f), 3, 3), np.nan))
     named = any(getattr(getattr(getattr(m, "visual", None), "material", None), "name", None) for m in parts)
-    if not (named or any_uv or any_colour):
+    if not (named or labelled or any_uv or any_colour):
         return (), None, None, None, ()
     return (tuple(names), np.concatenate(per_face), np.concatenate(uvs) if any_uv else None,
             np.concatenate(colours) if any_colour else None, tuple(materials))
+
+
+PLY_LABELS = ("label", "labels", "material", "material_index", "material_id", "part", "part_id", "segment",
+              "segment_id", "object", "object_id", "object_index", "group", "group_id")  # face properties read as parts
+
+
+def _ply_face_labels(m) -> tuple[str, np.ndarray] | None:
+    """A PLY's face labels: the first integer face property named as in PLY_LABELS (trimesh keeps a
+    PLY's face properties in metadata['_ply_raw']), as (name, (faces,) int64), or None."""
+    raw = (getattr(m, "metadata", None) or {}).get("_ply_raw") or {}
+    data = (raw.get("face") or {}).get("data")
+    fields = getattr(getattr(data, "dtype", None), "names", None) or ()
+    for prop in PLY_LABELS:
+        name = next((f for f in fields if f.lower() == prop), None)
+        if name is None:
+            continue
+        values = np.asarray(data[name]).ravel()
+        if values.dtype.kind not in "iu" or len(values) != len(m.faces):
+            continue
+        return prop, values.astype(np.int64)
+    return None
+
+
+def _ply_names_texture(path: Path) -> bool:
+    """Whether a PLY's header names a texture (`comment TextureFile NAME`, as trimesh reads it)."""
+    with open(path, "rb") as f:
+        for _ in range(10000):
+            line = f.readline()
+            if not line or line.strip() == b"end_header":
+                return False
+            if b"texturefile" in line.lower():
+                return True
+    return False
+

@@ -1,7 +1,7 @@
 """Several materials in one scene and known albedo textures (issue 19, items 1, 2 and 4).
 
-A mesh may carry parts (OBJ `usemtl` groups with their `.mtl`, glTF primitives' materials; or
-`materials.toml` in the scene folder naming them): each part has a start colour (the `.mtl` Kd,
+A mesh may carry parts (OBJ `usemtl` groups with their `.mtl`, glTF primitives' materials, a PLY's face
+labels; or `materials.toml` in the scene folder naming them): each part has a start colour (the `.mtl` Kd,
 glTF's baseColorFactor, the toml's `kd`, else 1) and possibly a known relative albedo over its
 surface (`map_Kd` / baseColorTexture, sampled at each pixel's surface point, sRGB-decoded and
 filtered to the pixel's footprint by a mip pyramid; or vertex colours).
@@ -264,8 +264,8 @@ def scene_parts(mesh, mesh_path: Path, scene_dir: Path, use_texture: bool = True
     if not names:
         if toml.get("parts"):
             raise InputError(f"names parts {sorted(toml['parts'])}, but {mesh_path.name} has no material groups",
-                             toml_path, f"give {mesh_path.name} `usemtl` groups (OBJ) or materials (glTF), or remove "
-                                        "materials.toml")
+                             toml_path, f"give {mesh_path.name} `usemtl` groups (OBJ), materials (glTF) or a face "
+                                        "label property (PLY), or remove materials.toml")
         return None
     files: list[Path] = []
     if toml:
