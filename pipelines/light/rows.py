@@ -146,7 +146,8 @@ class RowsPart:
     def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype) -> np.ndarray:
         """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows."""
         sw = np.sqrt(self.w).astype(dtype)[:, None]
-        A = A_D.astype(dtype) * (sw * self._kd(c).astype(dtype))
+        A = A_D.astype(dtype)  # a copy (A_D float32): scaled in place, no second temporary
+        A *= sw * self._kd(c).astype(dtype)
         if A_S is not None and self.ks[c] != 0:
             A += A_S.astype(dtype) * (sw * dtype(self.ks[c]))
         return A
@@ -159,13 +160,13 @@ class RowsPart:
         if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
             ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
             A = self._weighted(A_D, A_S, ref, dtype)
-            h = (A.T.astype(np.float64) @ (self.b * sw[:, None])) * scale[None, :]
+            h = (A.T.astype(np.float64, copy=False) @ (self.b * sw[:, None])) * scale[None, :]
             return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
         G, h = [], []
         for c in range(np.shape(self.kd)[-1]):
             A = self._weighted(A_D, A_S, c, dtype)
             G.append(_gram(A))
-            h.append(A.T.astype(np.float64) @ (self.b[:, c] * sw))
+            h.append(A.T.astype(np.float64, copy=False) @ (self.b[:, c] * sw))
         return SystemPart(np.stack(G), np.column_stack(h), self.bb, self.n_pixels, None)
 
     def _kd(self, c: int) -> np.ndarray:
