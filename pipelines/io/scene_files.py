@@ -336,4 +336,3 @@ def _ply_names_texture(path: Path) -> bool:
             if b"texturefile" in line.lower():
                 return True
     return False
-
