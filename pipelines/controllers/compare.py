@@ -44,9 +44,10 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
         first = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
                             o.sh_nonnegative)
         texels = bright_texels(first.light, systems.vis.cube)
-        if len(texels):
-            ne = None  # (its transport rows go before the recast builds new ones)
-            _, ne = recast_bright(systems, backend, texels, material, o, progress, resolve=False)
+        if len(texels):  # (corrected in place on the sampled route, as solve's)
+            keep = None if options.exact else ne
+            ne = None
+            _, ne, _ = recast_bright(systems, backend, texels, material, o, progress, resolve=False, system=keep)
     observability, unobservable = ls.observability(ne)
     rows, lights = [], []
     for basis, variant in COMPARE_RUNS:

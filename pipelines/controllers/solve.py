@@ -270,38 +270,69 @@ class _Systems:
             out.append((np.stack(G), np.column_stack(h), (fs.weights[sel, None] * b[sel] ** 2).sum(axis=0)))
         return out
 
-    def recast(self, backend, texels: np.ndarray):
-        """Cast the visibility toward `texels` for every pixel; later systems use it."""
+    def recast(self, backend, texels: np.ndarray, system=None) -> dict:
+        """Cast the visibility toward `texels` for every pixel; later systems use it. On the sampled
+        route the transport rows whose visibility changed (few: the inference is rarely wrong) are
+        rebuilt in place, and `system` (a sampled `LightSystem` on these rows) is corrected by their
+        change: its tree systems stay exact without a second pass over the rows. Returns how many
+        rows changed."""
         from ..geometry.visibility import VisibilityData, recast_columns
         from ..light.rows import TransportRows
 
         v = self.vis
-        stored = recast_columns(backend, v.samples, v.cube, np.asarray(v.stored), texels, v.supersample)
+        old = np.asarray(v.stored)
+        stored = recast_columns(backend, v.samples, v.cube, old, texels, v.supersample)
+        changed = np.flatnonzero((stored != old).any(axis=1))
         self.vis = VisibilityData(v.samples, v.cube, v.supersample, stored)
-        if not self.options.exact:
+        out = {"pixels": int(len(changed))}
+        if self.options.exact:
+            return out
+        if system is None:
             self.fit_rows = TransportRows(self.vis, self.fit_sample.rows)
             self.held_rows = TransportRows(self.vis, self.held_sample.rows)
+            return out
+        parts = {id(self.fit_rows): [system.fit] + ([system.explore] if system.explore is not None else []),
+                 id(self.held_rows): [system.held_out]}
+        for tr in (self.fit_rows, self.held_rows):
+            local = np.flatnonzero(np.isin(tr.rows, changed))
+            out["fit_rows" if tr is self.fit_rows else "held_out_rows"] = int(len(local))
+            before = []
+            for part in parts[id(tr)]:
+                mine = local[local < part.n_rows]
+                before.append((part, mine, part.D.rows[mine].copy(), None if part.S is None else part.S.rows[mine].copy(),
+                               part._versions()))
+            tr.update(stored[tr.rows[local]], local)
+            for part, mine, old_D, old_S, versions in before:
+                part.correct(mine, old_D, old_S, versions)
+        return out
 
 
 def recast_bright(systems: _Systems, backend, texels: np.ndarray, material: Material, light_options: LightOptions,
-                  progress: Progress, resolve: bool = True):
+                  progress: Progress, resolve: bool = True, system=None):
     """Cast `texels` (`bright_texels` of a light: the directions that carry much of it) exactly for
     every pixel (the visibility was inferred there from neighbours) and solve the light again on
     the corrected system, levels chosen afresh, so the report's levels and errors are all of the
-    system the light is solved on. Returns (solution, system), the solution None unless `resolve`.
-    The caller drops its old system first: its transport rows are as large as the new ones (~1 GB
-    at R = 32 for a glossy material), and both need not be held at once."""
+    system the light is solved on. Returns (solution, system, what changed), the solution None
+    unless `resolve`.
+
+    `system`: the sampled system of `material` the light was solved on; it is corrected in place
+    for the few rows whose visibility changed (`_Systems.recast`), so that exploring the levels
+    again re-solves the trees it has already projected without a pass over the rows. Without it
+    (and on the exact route) the system is built again: the caller drops its old one first, as the
+    transport rows are large (~1 GB at R = 32 for a glossy material)."""
     from ..light import bases
 
     progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
-    systems.recast(backend, texels)
-    system = systems.system(material)
+    exact = systems.options.exact
+    changed = systems.recast(backend, texels, None if exact else system)
+    if exact or system is None:
+        system = systems.system(material)
     if not resolve:
-        return None, system
+        return None, system, changed
     o = light_options
     sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
                       o.sh_order, o.sh_nonnegative)
-    return sol, system
+    return sol, system, changed
 
 
 def bright_texels(light: np.ndarray, cube, share_sq: float = BRIGHT_SHARE_SQ, most: int = MAX_BRIGHT) -> np.ndarray:
@@ -557,12 +588,14 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         system = systems.system(material)
         sol = full_solve(material, system)
         result.solution, result.context = sol, system
-    recast = np.zeros(0, np.int64)
+    recast, changed = np.zeros(0, np.int64), None
     if adaptive and backend is not None:
         recast = bright_texels(sol.light, systems.vis.cube)
         if len(recast):
-            result.context = system = None  # the old transport rows go before the recast builds new ones
-            sol, system = recast_bright(systems, backend, recast, material, light_options, progress)
+            keep = None if options.exact else system  # corrected in place (the exact route builds anew)
+            result.context = system = None  # (on the exact route the old G goes before the new one is built)
+            sol, system, changed = recast_bright(systems, backend, recast, material, light_options, progress,
+                                                 system=keep)
     observability, unobservable = ls.observability(system)
     relit = render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
     versus = versus_photo(relit, values, usable)
@@ -592,8 +625,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "pixels": {"used": int(len(values)), "saturated_excluded": int(saturated.sum()),
                    "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
         "sample": systems.sample_info,
-        "exact_directions": {"texels": recast.tolist(),
-                             "note": "directions that carry much of the light, cast for every pixel"},
+        "exact_directions": {"texels": recast.tolist(), **({"changed": changed} if changed else {}),
+                             "note": "directions that carry much of the light, cast for every pixel"
+                                     + ("; changed: the used pixels whose visibility toward them the cast corrected, "
+                                        "and how many of them are fitted or held-out rows" if changed else "")},
         "normal_equations_seconds": getattr(system, "seconds", 0.0),
         "observability": {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
                           "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum()),

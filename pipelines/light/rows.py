@@ -19,7 +19,7 @@ only a new S.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -41,6 +41,7 @@ class Pyramid:
     def __init__(self, rows: np.ndarray, tile_sizes: tuple[int, ...]):
         self.rows = rows
         self.tile_sizes = tuple(int(s) for s in tile_sizes)
+        self.version = [0]  # shared with the heads: bumped when rows change in place (`set_rows`)
         n = len(rows)
         self.levels = []  # levels[t][l]: (n, 4^l) the sums of the tile's 2^l x 2^l blocks, row-major
         self.offsets = []
@@ -60,9 +61,23 @@ class Pyramid:
     def head(self, n: int) -> "Pyramid":
         """The first n rows (views, no copy)."""
         out = object.__new__(Pyramid)
-        out.rows, out.tile_sizes, out.offsets = self.rows[:n], self.tile_sizes, self.offsets
+        out.rows, out.tile_sizes, out.offsets, out.version = self.rows[:n], self.tile_sizes, self.offsets, self.version
         out.levels = [{lv: (None if a is None else a[:n]) for lv, a in tile.items()} for tile in self.levels]
         return out
+
+    def set_rows(self, index: np.ndarray, rows: np.ndarray) -> None:
+        """Replace some rows in place (their block sums too): every head sees them, and the systems
+        projected before are marked stale (`version`) unless corrected (`RowsPart.correct`)."""
+        index = np.asarray(index, np.int64)
+        if not len(index):
+            return
+        new = Pyramid(np.ascontiguousarray(rows, np.float32), self.tile_sizes)
+        self.rows[index] = new.rows
+        for tile, fresh in zip(self.levels, new.levels):
+            for level, a in tile.items():
+                if a is not None:
+                    a[index] = fresh[level]
+        self.version[0] += 1
 
     def leaf_sums(self, tree: HaarTree) -> np.ndarray:
         """(n, leaves) float32: each row's transport summed over each leaf (`tree.leaves()` order)."""
@@ -120,6 +135,9 @@ class RowsPart:
     w: np.ndarray
     n_pixels: int
     precision: str = "double"
+    # the systems of the trees projected so far, by tree: a level explored again (after a few rows
+    # changed, `correct`) costs no second pass over the rows
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_rows(self) -> int:
@@ -181,8 +199,47 @@ class RowsPart:
         return kd if kd.ndim == 2 else kd[None, :]
 
     # -- the part interface (as system.SystemPart) --------------------------------------------------
+    def _versions(self) -> tuple:
+        return (self.D.version[0], None if self.S is None else self.S.version[0])
+
     def project_tree(self, tree: HaarTree) -> SystemPart:
-        return self._system(self.D.leaf_sums(tree), None if self.S is None else self.S.leaf_sums(tree))
+        key = (tree.tile_sizes, tree.subdivided)
+        hit = self.memo.get(key)
+        if hit is not None and hit[0] == self._versions():
+            return hit[1]
+        out = self._system(self.D.leaf_sums(tree), None if self.S is None else self.S.leaf_sums(tree))
+        self.memo[key] = (self._versions(), out)
+        return out
+
+    def correct(self, index: np.ndarray, old_D: np.ndarray, old_S: np.ndarray | None, stale: tuple) -> None:
+        """Rows `index` of D (and S) were replaced in place (`Pyramid.set_rows`): their previous
+        values were old_D, old_S, and `stale` the versions before. Each memoised tree system is
+        corrected by the rows' change (the new rows' system minus the old rows'), exactly as if it
+        were projected again, at the cost of those rows alone."""
+        index = np.asarray(index, np.int64)
+        keep = {k: v for k, v in self.memo.items() if v[0] == stale}
+        self.memo = {}
+        if not len(keep):
+            return
+        if not len(index):
+            self.memo = {k: (self._versions(), v[1]) for k, v in keep.items()}
+            return
+        kd = self.kd[index] if np.ndim(self.kd) == 2 else self.kd
+        w, b = self.w[index], self.b[index]
+
+        def rows_part(D, S):
+            return RowsPart(Pyramid(np.ascontiguousarray(D), self.D.tile_sizes),
+                            None if S is None else Pyramid(np.ascontiguousarray(S), self.D.tile_sizes),
+                            kd, self.ks, b, w, 0, self.precision)
+
+        old = rows_part(old_D, old_S)
+        new = rows_part(self.D.rows[index], None if self.S is None else self.S.rows[index])
+        for key, (_, system) in keep.items():
+            tree = HaarTree(*key)
+            a, c = new.project_tree(tree), old.project_tree(tree)
+            fixed = SystemPart(system.G + a.G - c.G, system.h + a.h - c.h, system.bb, system.n_pixels,
+                               system.channel_scale)
+            self.memo[key] = (self._versions(), fixed)
 
     def head(self, n: int, precision: str | None = None) -> "RowsPart":
         """The first n rows, standing for the same pixels (weights scaled up): a smaller sample when
@@ -348,8 +405,40 @@ class TransportRows:
         self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows])
         self.rows = rows
         self._diffuse: Pyramid | None = None
-        self._coated: tuple | None = None  # (plastic key, D seen through the coating)
-        self._specular: dict = {}
+        self._coated: tuple | None = None  # (plastic key, D seen through the coating, the material)
+        self._specular: dict = {}  # lobe key -> (S, the unit material)
+
+    def pyramids(self) -> list:
+        """(pyramid, the material it was built with: None for the Lambertian D, kind) of every kept
+        transport: what `update` rebuilds rows of."""
+        out = [] if self._diffuse is None else [(self._diffuse, None, "diffuse")]
+        if self._coated is not None:
+            out.append((self._coated[1], self._coated[2], "diffuse"))
+        out += [(S, m, "specular") for S, m in self._specular.values()]
+        return out
+
+    def update(self, stored: np.ndarray, index: np.ndarray) -> None:
+        """New visibility for some of these rows (`index` into them; `stored` their new stored
+        rows): the kept transports are rebuilt for those rows alone, in place."""
+        from ..geometry.visibility import decode
+        from ..model.render import diffuse_transport, specular_transport
+
+        index = np.asarray(index, np.int64)
+        if not len(index):
+            return
+        v = self.vis
+        v.stored[index] = stored
+        V = decode(np.asarray(stored), v.cube.n_texels, v.encoding, True)
+        normal, view = v.samples.normal[index], v.samples.view[index]
+        for pyramid, material, kind in self.pyramids():
+            sel = np.flatnonzero(index < len(pyramid.rows))  # a specular S may cover a head only
+            if not len(sel):
+                continue
+            if kind == "diffuse":
+                new = diffuse_transport(V[sel], normal[sel], v.cube, material, view[sel])
+            else:
+                new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material)
+            pyramid.set_rows(index[sel], new)
 
     def diffuse(self, material=None) -> Pyramid:
         """D (kd = 1) under `material`: the Lambertian one (kept) for every model but `plastic`, whose
@@ -373,7 +462,7 @@ class TransportRows:
         if key is None:
             self._diffuse = pyramid
         else:
-            self._coated = (key, pyramid)
+            self._coated = (key, pyramid, material)
         return pyramid
 
     def specular(self, material, n_rows: int | None = None) -> Pyramid:
@@ -394,8 +483,8 @@ class TransportRows:
                 sl = slice(sl.start, min(sl.stop, n))
                 S[sl] = specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl],
                                            self.vis.samples.view[sl], self.vis.cube, unit)
-            self._specular = {key: Pyramid(S, self.vis.cube.tile_sizes)}
-        return self._specular[key]
+            self._specular = {key: (Pyramid(S, self.vis.cube.tile_sizes), unit)}
+        return self._specular[key][0]
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
              n_rows: int | None = None, albedo: np.ndarray | None = None) -> RowsPart:

@@ -25,7 +25,7 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
 from ..scene import MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_views
 from .visibility import visibility_stage
 
-VERSION = 11  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 12  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
@@ -34,8 +34,10 @@ VERSION = 11  # 4: the sampled route; reflectance rounds compare their own held-
 #   out/views/NAME/); 9: several parts and textures (the mesh's materials, materials.toml: per-part kd fitted
 #   with the light), reflectance.json's `parts`; 10: auto gives a significant probe that its own held-out rows
 #   do not reward its own light before it stays Lambertian; 11: (a coarse light's bright directions cast
-#   before the solve, tried in 10, taken out again: it moved glossy fits to worse optima)
-COMPARE_VERSION = 6  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve 10, 11
+#   before the solve, tried in 10, taken out again: it moved glossy fits to worse optima); 12: the exact recast
+#   corrects the system in place (the rows it changed; the same light), solve_report.json's exact_directions.changed
+COMPARE_VERSION = 7  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve
+#   10, 11; 7: as solve 12
 
 
 class ConsoleProgress:

@@ -1,0 +1,145 @@
+"""Transport rows changed in place (`light.rows`): the systems already projected are corrected by the
+rows' change, and the result is the system projected afresh.
+
+After the light is solved, `solve` casts the directions that carry it exactly for every pixel (the
+adaptive visibility inferred them from neighbours) and explores the levels again on the corrected
+system. Only the few rows whose visibility changed are rebuilt (`TransportRows.update`), and every
+tree system the exploration memoised is corrected by them (`RowsPart.correct`), so the second
+exploration needs no pass over the rows. These tests hold that shortcut to the long way round.
+"""
+
+import numpy as np
+import pytest
+
+from pipelines.controllers.solve import SolveOptions, _Systems, bright_texels, prepare_photo
+from pipelines.light import bases
+from pipelines.light.cubemap import CubeMap
+from pipelines.light.haar import HaarTree, subdivide
+from pipelines.light.rows import TransportRows
+from pipelines.geometry.visibility import VisibilityData, compute_visibility
+from pipelines.io import images
+from pipelines.model.materials import Material
+
+
+def _trees(cube):
+    """Three nested trees: the roots, every root split, and one tile split once more."""
+    roots = HaarTree.roots(cube.tile_sizes)
+    one = subdivide(roots, np.ones(roots.n_leaves, bool))
+    grow = np.zeros(one.n_leaves, bool)
+    grow[:4] = True
+    return [roots, one, subdivide(one, grow)]
+
+
+def _small_vis(mitsuba_scene, resolution=8, step=7):
+    scene = mitsuba_scene("bunny_sun")
+    samples = type(scene.samples)(**{f: getattr(scene.samples, f)[::step] for f in
+                                     ("pixel", "position", "normal", "geometric_normal", "view", "face")})
+    cube = CubeMap(resolution)
+    return scene, compute_visibility(scene.backend, samples, cube)
+
+
+def _assert_same_system(a, b, rtol):
+    scale = max(float(np.abs(b.G).max()), 1e-300)
+    assert np.abs(a.G - b.G).max() <= rtol * scale
+    assert np.abs(a.h - b.h).max() <= rtol * max(float(np.abs(b.h).max()), 1e-300)
+    np.testing.assert_allclose(a.bb, b.bb, rtol=1e-12)
+
+
+@pytest.mark.parametrize("material", [
+    Material(kd=(0.8, 0.5, 0.3)),
+    Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"),
+    Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2),
+], ids=["lambert", "blinn-phong", "plastic"])
+@pytest.mark.parametrize("per_row_albedo", [False, True], ids=["uniform", "albedo-per-row"])
+def test_corrected_tree_systems_equal_systems_projected_afresh(mitsuba_scene, material, per_row_albedo):
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(3)
+    rows = rng.permutation(vis.n_pixels)[:600]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = rng.uniform(0.5, 2.0, len(rows))
+    albedo = rng.uniform(0.3, 1.2, (len(rows), 3)) if per_row_albedo else None
+    trees = _trees(vis.cube)
+
+    tr = TransportRows(vis, rows)
+    fit = tr.part(material, photo, weights, 5000, albedo=albedo)
+    head = fit.head(256, "single")
+    for t in trees:
+        fit.project_tree(t), head.project_tree(t)
+    untouched = tr.part(material, photo, weights, 5000, albedo=albedo)  # memoises, but is not corrected
+    untouched.project_tree(trees[1])
+
+    # new visibility for a few rows, some inside the head and some beyond it
+    local = np.array([3, 70, 255, 256, 400, 599])
+    new = np.asarray(tr.vis.stored)[local].copy()
+    new ^= rng.integers(0, 256, new.shape, dtype=np.uint8)
+    stored = np.asarray(vis.stored).copy()
+    stored[rows[local]] = new
+    before = [(p, local[local < p.n_rows], p.D.rows[local[local < p.n_rows]].copy(),
+               None if p.S is None else p.S.rows[local[local < p.n_rows]].copy(), p._versions()) for p in (fit, head)]
+    tr.update(new, local)
+    for p, mine, old_D, old_S, versions in before:
+        p.correct(mine, old_D, old_S, versions)
+
+    fresh_tr = TransportRows(VisibilityData(vis.samples, vis.cube, vis.supersample, stored), rows)
+    fresh = fresh_tr.part(material, photo, weights, 5000, albedo=albedo)
+    fresh_head = fresh.head(256, "single")
+    np.testing.assert_array_equal(fit.D.rows, fresh.D.rows)
+    for t in trees:
+        key = (t.tile_sizes, t.subdivided)
+        assert fit.memo[key][0] == fit._versions()  # corrected, not dropped
+        _assert_same_system(fit.project_tree(t), fresh.project_tree(t), 1e-9)
+        _assert_same_system(head.project_tree(t), fresh_head.project_tree(t), 1e-5)  # float32 sums
+    # a part that was not corrected does not use its stale system
+    _assert_same_system(untouched.project_tree(trees[1]), fresh.project_tree(trees[1]), 1e-9)
+    changed = np.abs(untouched.memo[(trees[1].tile_sizes, trees[1].subdivided)][1].G
+                     - fresh.project_tree(trees[1]).G).max()
+    assert changed == 0.0
+
+
+def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene):
+    """bunny_sun's sun, with wrong visibility bits toward it in some fitted and held-out rows (what
+    the adaptive inference can get wrong): casting the bright directions again and exploring the
+    levels on the system corrected in place gives the light, levels and errors of the same route
+    with the system built again from the corrected visibility."""
+    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
+    photo = images.read_image(scene.path / "image.exr")
+    options = SolveOptions()
+    values, usable, held = prepare_photo(vis, photo, options)
+    light = bases.solve(_Systems(vis, values, usable, held, options, _quiet()).system(Material()), vis.cube).light
+    texels = bright_texels(light, vis.cube)
+    assert 1 <= len(texels) <= 8  # the sun
+
+    stored = np.asarray(vis.stored).copy()
+    rng = np.random.default_rng(0)
+    wrong = rng.choice(vis.n_pixels, 400, replace=False)
+    for t in texels:  # flip the bit toward the sun in those pixels that face it
+        can = (vis.samples.normal[wrong] @ vis.cube.directions[t]) > 0.05
+        stored[wrong[can], t >> 3] ^= np.uint8(1 << (t & 7))
+    corrupt = VisibilityData(vis.samples, vis.cube, vis.supersample, stored)
+
+    def solved(in_place: bool):
+        systems = _Systems(corrupt, values, usable, held, options, _quiet())
+        system = systems.system(Material())
+        first = bases.solve(system, vis.cube)
+        changed = systems.recast(scene.backend, texels, system if in_place else None)
+        if not in_place:
+            system = systems.system(Material())
+        return first, bases.solve(system, vis.cube), changed, system
+
+    first, a, changed, system = solved(True)
+    _, b, _, _ = solved(False)
+    assert changed["fit_rows"] > 20 and changed["held_out_rows"] > 2
+    assert first.held_out_rmse > 1.01 * b.held_out_rmse  # the wrong bits mattered
+    np.testing.assert_allclose(a.light, b.light, rtol=1e-6, atol=1e-9 * float(np.abs(b.light).max()))
+    assert [lv.n_coefficients for lv in a.levels] == [lv.n_coefficients for lv in b.levels]
+    np.testing.assert_allclose([lv.held_out_rmse for lv in a.levels], [lv.held_out_rmse for lv in b.levels],
+                               rtol=1e-6)
+    assert a.chosen == b.chosen
+    # and the second exploration reused the first one's tree systems (the same trees, corrected)
+    assert len(system.explore.memo) >= len(first.levels) - 1
+
+
+def _quiet():
+    from pipelines.controllers.solve import Progress
+
+    return Progress()
