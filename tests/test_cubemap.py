@@ -124,6 +124,29 @@ def test_texel_solid_angle_matches_fine_grid_quadrature(R, hemisphere):
         assert abs(estimate - cube.solid_angles[i]) <= 1e-5 * cube.solid_angles[i]
 
 
+
+@pytest.mark.parametrize("R,hemisphere", [(2, True), (8, False), (32, True)])
+def test_vector_solid_angle_is_the_integral_of_the_direction(R, hemisphere):
+    """The closed form (Lambert's polygon formula) against a 256 x 256 midpoint grid of
+    d dOmega = (n + s a + t b) ds dt / (1 + s^2 + t^2)^2 on a few texels, and its sums: the
+    hemisphere's cosine integral is (0, 0, pi), the sphere's is 0."""
+    cube = CubeMap(R, hemisphere)
+    m_all = cube.vector_solid_angles
+    np.testing.assert_allclose(m_all.sum(axis=0), [0.0, 0.0, np.pi if hemisphere else 0.0], atol=1e-12)
+    frames = np.array([cubemap.FACE_FRAMES[f] for f in FACE_NAMES])
+    m = 256
+    rng = np.random.default_rng(R)
+    for i in rng.choice(cube.n_texels, size=min(cube.n_texels, 10), replace=False):
+        h = 2.0 / R / m
+        s = -1.0 + 2.0 * cube.texel_col[i] / R + h * (np.arange(m) + 0.5)
+        t = -1.0 + 2.0 * cube.texel_row[i] / R + h * (np.arange(m) + 0.5)
+        S, T = np.meshgrid(s, t)
+        n, a, b = frames[cube.texel_face[i]]
+        w = h * h / (1.0 + S * S + T * T) ** 2
+        estimate = np.array([np.sum(w * (n[k] + S * a[k] + T * b[k])) for k in range(3)])
+        np.testing.assert_allclose(m_all[i], estimate, rtol=0, atol=2e-6 * np.linalg.norm(estimate))
+        assert np.linalg.norm(m_all[i]) <= cube.solid_angles[i]
+
 def test_face_rectangle_solid_angle_of_whole_face_is_4pi_over_6():
     assert abs(face_rectangle_solid_angle(-1.0, 1.0, -1.0, 1.0) - 4.0 * np.pi / 6.0) < 1e-12
     # the half face above the horizon of a side face

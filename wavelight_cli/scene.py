@@ -165,6 +165,38 @@ def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> Vie
     return View(camera, pose, None, f"view-{digest}")
 
 
+_LOADED: dict = {}  # the mesh read last (by path, size and mtime) and its ray casters
+
+
+def scene_mesh(path: Path):
+    """`load_mesh(path)`, kept for the next call in this process while the file is unchanged: a
+    `solve` that runs its visibility stages first reads the mesh once."""
+    from pipelines.io.scene_files import load_mesh
+
+    path = Path(path)
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    except OSError:
+        return load_mesh(path)  # (its error names the file)
+    if _LOADED.get("key") != key:
+        _LOADED.clear()
+        _LOADED.update(key=key, mesh=load_mesh(path), backends={})
+    return _LOADED["mesh"]
+
+
+def scene_backend(mesh, name: str = "embree"):
+    """A ray caster for `mesh`, built once per mesh `scene_mesh` keeps."""
+    from pipelines.geometry import raycast
+
+    if _LOADED.get("mesh") is not mesh:
+        return raycast.make_backend(mesh, name)
+    kept = _LOADED["backends"]
+    if name not in kept:
+        kept[name] = raycast.make_backend(mesh, name)
+    return kept[name]
+
+
 def mesh_coverage(view: View, camera, mesh, backend):
     """(H, W) bool: the pixels of `view` whose centre ray hits the mesh and that its mask keeps
     (what a render covers when no edge margin is left out; `outputs.view_image` fills that margin)."""

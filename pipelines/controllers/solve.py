@@ -182,10 +182,15 @@ class _Systems:
         t0 = time.perf_counter()
         fs, hs = self.fit_sample, self.held_sample
         a = self.albedo
+        # several parts: the rows keep each part's known albedo and the factors apart (`RowsPart.group`),
+        # so that a Lambertian system serves other factors without a pass over the rows (`rows.with_scales`)
+        grouped = {} if a is None else {"scales": a.scales}
         fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows,
-                                 None if a is None else a.values(fs.rows))
+                                 None if a is None else a.base[fs.rows],
+                                 group=None if a is None else a.part[fs.rows], **grouped)
         held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates,
-                                   albedo=None if a is None else a.values(hs.rows))
+                                   albedo=None if a is None else a.base[hs.rows],
+                                   group=None if a is None else a.part[hs.rows], **grouped)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
 
     def highlight_rows(self, light: np.ndarray, kd, n_fit: int, n_held: int) -> tuple[np.ndarray, np.ndarray]:
@@ -231,15 +236,24 @@ class _Systems:
                 spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
         return fit_scales(self.albedo, rows, weights, diffuse, spec, self.values[rows])
 
-    def part_leaf_systems(self, tree, material: Material) -> list:
+    def part_leaf_systems(self, tree, material: Material, system=None) -> list:
         """Per part, the leaf-space normal equations of its fit rows (G (3, k, k), h (k, 3), bb (3,))
         with kd = material.kd x base (the part's factor 1), for `parts.varpro_scales`; None for a part
-        no fit row sees. The sampled route: the fit sample's rows; exact: every fit pixel."""
+        no fit row sees. The sampled route: the fit sample's rows (from `system`, the Lambertian
+        system the tree was solved on, when given: its per-part tree systems are kept); exact: every
+        fit pixel."""
         from ..light import haar
         from ..light.rows import _gram
 
         a = self.albedo
         out = []
+        if system is not None and not self.options.exact and getattr(system.fit, "_per_group", False):
+            kept = system.fit.group_systems(tree)
+            for q in range(len(a.parts.parts)):
+                part = kept.get(q)
+                out.append(None if part is None else (np.stack([part.gram(c) for c in range(3)]),
+                                                      np.asarray(part.h), np.asarray(part.bb)))
+            return out
         if self.options.exact:
             from ..light.system import build_normal_equations
 
@@ -482,15 +496,27 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         # and the scales trade off along a slow direction); the last round refines afresh
         if getattr(sol, "tree", None) is not None and not m.specular:
             # a Lambertian light on a tree: the factors with the light re-solved for each (variable
-            # projection on the tree's leaves), then the light refined afresh; once more on its tree
+            # projection on the tree's leaves), the light re-solved on its tree, the factors once
+            # more, then the light refined afresh
             from ..model.parts import varpro_scales
 
+            # (sampled route: the step between re-solves the tree under the new factors, its per-part
+            # systems kept, and only the last one explores the levels afresh)
             for k in range(2):
-                new = varpro_scales(albedo, systems.part_leaf_systems(sol.tree, m))
+                new = varpro_scales(albedo, systems.part_leaf_systems(sol.tree, m, ne))
                 change = float(np.max(np.abs(new / albedo.scales - 1)))
                 albedo.scales = new
-                sol, ne = solve_light_only(m)
-                if change < 10 * PART_TOL:
+                last = k == 1 or change < 10 * PART_TOL
+                if not last and not options.exact:
+                    from ..light.rows import with_scales
+
+                    ne = with_scales(ne, albedo.scales)
+                    quick = bases.refit(ne, vis.cube, sol)
+                    if quick is not None:
+                        sol = quick
+                        continue
+                sol, ne = solve_light_only(m, ne)
+                if last:
                     break
             return _parts_done(sol, ne, k)
         history = [np.log(albedo.scales)]
@@ -526,7 +552,14 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             f"{n} {' '.join(f'{v:.3g}' for v in albedo.scales[i])}" for i, n in enumerate(names)))
         return sol, ne
 
-    def solve_light_only(m: Material):
+    def solve_light_only(m: Material, previous=None):
+        if previous is not None and albedo is not None and not options.exact and not m.specular:
+            # the Lambertian system of the part factors before: its tree systems are kept per part, so
+            # the levels are explored again under the new factors without a pass over the rows
+            from ..light.rows import with_scales
+
+            ne = with_scales(previous, albedo.scales)
+            return full_solve(m, ne), ne
         if not options.exact and m.specular:
             # a reflectance round: the refinement's tree re-solved on a smaller system (the rounds
             # fit a handful of material parameters; the final light is refined on the whole sample).

@@ -58,12 +58,13 @@ class VisibilityOptions:
         return "-".join(parts)
 
 
-def used_pixels(camera, pose, mesh, mask, options: VisibilityOptions, pose_path=None, mask_path=None):
-    """The used pixels' surface samples: (samples, diagnostics, the ray caster)."""
+def used_pixels(camera, pose, mesh, mask, options: VisibilityOptions, pose_path=None, mask_path=None, backend=None):
+    """The used pixels' surface samples: (samples, diagnostics, the ray caster: `backend`, or one
+    built for the mesh)."""
     from ..geometry import camera as cam
     from ..geometry import raycast
 
-    backend = raycast.make_backend(mesh, options.backend)
+    backend = raycast.make_backend(mesh, options.backend) if backend is None else backend
     try:
         samples, diag = cam.pixel_samples(camera, pose, mesh, backend, mask, options.edge_margin, mask_path=mask_path)
     except InputError as exc:

@@ -169,11 +169,19 @@ class CubeMap:
 
     @cached_property
     def vector_solid_angles(self) -> np.ndarray:
-        """(N, 3) integral of the direction over each texel (a 16 x 16 sub-texel rule, ~1e-7
-        relative). For a normal N with N.d > 0 over the whole texel, N . m_i is exactly the
-        texel's projected solid angle, the integral of the cosine: the diffuse transport."""
-        dirs, weights = self._quadrature(16)
-        return np.einsum("nsk,ns->nk", dirs.astype(np.float64), weights.astype(np.float64))
+        """(N, 3) integral of the direction over each texel, in closed form: for a spherical
+        polygon with vertices v_k, m = 1/2 sum_k theta_k u_k, theta_k the angle between v_k and
+        v_k+1 and u_k the unit normal of their great circle (Lambert's formula for a polygon's
+        vector irradiance; Arvo 1995). For a normal N with N.d > 0 over the whole texel, N . m_i is
+        exactly the texel's projected solid angle, the integral of the cosine: the diffuse transport."""
+        corners = [self.face_directions(*self.face_coordinates(r, c)) for r, c in ((0, 0), (0, 1), (1, 1), (1, 0))]
+        m = np.zeros((self.n_texels, 3))
+        for k in range(4):
+            a, b = corners[k], corners[(k + 1) % 4]
+            cross = np.cross(a, b)
+            sine = np.linalg.norm(cross, axis=1)
+            m += 0.5 * (np.arctan2(sine, np.einsum("nk,nk->n", a, b)) / np.maximum(sine, 1e-300))[:, None] * cross
+        return m * np.sign(np.einsum("nk,nk->n", m, self.directions))[:, None]  # towards the texel
 
     def quadrature(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k x k sub-texel quadrature: directions (N, k*k, 3) float32 and exact solid angles

@@ -19,6 +19,7 @@ only a new S.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -28,6 +29,9 @@ from scipy.linalg import blas
 from ..threads import parallel_blocks
 from .haar import HaarTree
 from .system import SystemPart
+
+
+MEMO_TREES = 6  # tree systems a RowsPart keeps (the latest exploration's levels)
 
 
 class Pyramid:
@@ -136,12 +140,34 @@ class RowsPart:
     n_pixels: int
     precision: str = "double"
     # the systems of the trees projected so far, by tree: a level explored again (after a few rows
-    # changed, `correct`) costs no second pass over the rows
-    memo: dict = field(default_factory=dict, repr=False, compare=False)
+    # changed, `correct`; with other part scales, `with_scales`) costs no second pass over the rows
+    memo: OrderedDict = field(default_factory=OrderedDict, repr=False, compare=False)
+    # several parts: row j's kd is kd[j] x group_scales[group[j]] (kd (n, C) then holds the material's
+    # kd x the known relative albedo, the part's fitted factor 1). A Lambertian tree system is then
+    # kept per part, so that it serves any factors: G_c = sum_q s_qc^2 G_qc, h_c = sum_q s_qc h_qc
+    group: np.ndarray | None = None
+    group_scales: np.ndarray | None = None
 
     @property
     def n_rows(self) -> int:
         return len(self.b)
+
+    @cached_property
+    def kd_eff(self) -> np.ndarray:
+        """The kd the rows render with: (C,), or (n, C) per row (the part factors applied)."""
+        kd = np.asarray(self.kd, np.float64)
+        if self.group is None:
+            return kd
+        return kd * np.asarray(self.group_scales, np.float64)[self.group]
+
+    def with_scales(self, scales: np.ndarray) -> "RowsPart":
+        """The same rows with other part factors (`group_scales`): the tree systems kept per part
+        serve it without a pass over the rows (the memo is shared)."""
+        from dataclasses import replace
+
+        if self.group is None:
+            raise ValueError("with_scales needs rows grouped by part")
+        return replace(self, group_scales=np.array(scales, np.float64), memo=self.memo)
 
     @cached_property
     def bb(self) -> np.ndarray:
@@ -150,7 +176,7 @@ class RowsPart:
     @cached_property
     def channel_scale(self) -> np.ndarray | None:
         """a_c with T_c = a_c T_ref when kd and ks are proportional across channels (else None)."""
-        kd, ks = np.asarray(self.kd, float), np.asarray(self.ks, float)
+        kd, ks = self.kd_eff, np.asarray(self.ks, float)
         if kd.ndim == 2:  # per-row albedo: one Gram matrix per channel
             return None
         ref = int(np.argmax(kd + ks))
@@ -176,7 +202,7 @@ class RowsPart:
         sw = np.sqrt(self.w)
         scale = self.channel_scale
         if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
-            ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks)))
+            ref = int(np.argmax(self.kd_eff + np.asarray(self.ks)))
             A = self._weighted(A_D, A_S, ref, dtype)
             h = (A.T.astype(np.float64, copy=False) @ (self.b * sw[:, None])) * scale[None, :]
             return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
@@ -189,27 +215,68 @@ class RowsPart:
 
     def _kd(self, c: int) -> np.ndarray:
         """Channel c's kd: a scalar, or (n, 1) per row."""
-        kd = np.asarray(self.kd, np.float64)
+        kd = self.kd_eff
         return kd[..., c][:, None] if kd.ndim == 2 else np.asarray(kd[c])
 
     @property
     def _kd_rows(self) -> np.ndarray:
         """kd as (1, C) or (n, C), to multiply (n, C) radiance."""
-        kd = np.asarray(self.kd, np.float64)
+        kd = self.kd_eff
         return kd if kd.ndim == 2 else kd[None, :]
 
     # -- the part interface (as system.SystemPart) --------------------------------------------------
     def _versions(self) -> tuple:
         return (self.D.version[0], None if self.S is None else self.S.version[0])
 
-    def project_tree(self, tree: HaarTree) -> SystemPart:
+    @property
+    def _per_group(self) -> bool:
+        """Tree systems kept per part (Lambertian rows grouped by part), else for the factors as they are."""
+        return self.group is not None and self.S is None
+
+    def _tree_key(self, tree: HaarTree) -> tuple:
         key = (tree.tile_sizes, tree.subdivided)
+        if self.group is not None and not self._per_group:  # (a specular term: for these factors only)
+            key += (np.asarray(self.group_scales, np.float64).tobytes(),)
+        return key
+
+    def _tree_entry(self, tree: HaarTree):
+        """The memo's value for a tree: its SystemPart, or per part {q: SystemPart at factor 1}."""
+        key = self._tree_key(tree)
         hit = self.memo.get(key)
         if hit is not None and hit[0] == self._versions():
+            self.memo.move_to_end(key)
             return hit[1]
-        out = self._system(self.D.leaf_sums(tree), None if self.S is None else self.S.leaf_sums(tree))
+        A_D = self.D.leaf_sums(tree)
+        if self._per_group:
+            out = {}
+            for q in np.unique(self.group):
+                sel = np.flatnonzero(self.group == q)
+                sub = RowsPart(None, None, self.kd[sel], self.ks, self.b[sel], self.w[sel], len(sel), self.precision)
+                out[int(q)] = sub._system(A_D[sel], None)
+        else:
+            out = self._system(A_D, None if self.S is None else self.S.leaf_sums(tree))
         self.memo[key] = (self._versions(), out)
+        while len(self.memo) > MEMO_TREES:  # the least recently used go (memory: leaves^2 per tree, part, channel)
+            self.memo.popitem(last=False)
         return out
+
+    def _combined(self, entry) -> SystemPart:
+        if not isinstance(entry, dict):
+            return entry
+        s = np.asarray(self.group_scales, np.float64)
+        C = s.shape[1]
+        G = sum(np.stack([s[q, c] ** 2 * part.gram(c) for c in range(C)]) for q, part in entry.items())
+        h = sum(part.h * s[q][None, :] for q, part in entry.items())
+        return SystemPart(G, h, self.bb, self.n_pixels, None)
+
+    def project_tree(self, tree: HaarTree) -> SystemPart:
+        return self._combined(self._tree_entry(tree))
+
+    def group_systems(self, tree: HaarTree) -> dict:
+        """Per part q, its rows' tree system at factor 1 ({q: SystemPart}; Lambertian grouped rows)."""
+        if not self._per_group:
+            raise ValueError("group_systems needs Lambertian rows grouped by part")
+        return self._tree_entry(tree)
 
     def correct(self, index: np.ndarray, old_D: np.ndarray, old_S: np.ndarray | None, stale: tuple) -> None:
         """Rows `index` of D (and S) were replaced in place (`Pyramid.set_rows`): their previous
@@ -217,29 +284,36 @@ class RowsPart:
         corrected by the rows' change (the new rows' system minus the old rows'), exactly as if it
         were projected again, at the cost of those rows alone."""
         index = np.asarray(index, np.int64)
-        keep = {k: v for k, v in self.memo.items() if v[0] == stale}
-        self.memo = {}
+        keep = OrderedDict((k, v) for k, v in self.memo.items() if v[0] == stale)
+        self.memo = OrderedDict()
         if not len(keep):
             return
         if not len(index):
-            self.memo = {k: (self._versions(), v[1]) for k, v in keep.items()}
+            self.memo = OrderedDict((k, (self._versions(), v[1])) for k, v in keep.items())
             return
         kd = self.kd[index] if np.ndim(self.kd) == 2 else self.kd
         w, b = self.w[index], self.b[index]
+        group = None if self.group is None else self.group[index]
 
         def rows_part(D, S):
             return RowsPart(Pyramid(np.ascontiguousarray(D), self.D.tile_sizes),
                             None if S is None else Pyramid(np.ascontiguousarray(S), self.D.tile_sizes),
-                            kd, self.ks, b, w, 0, self.precision)
+                            kd, self.ks, b, w, 0, self.precision, group=group, group_scales=self.group_scales)
+
+        def fix(system, a, c):
+            return SystemPart(system.G + a.G - c.G, system.h + a.h - c.h, system.bb, system.n_pixels,
+                              system.channel_scale)
 
         old = rows_part(old_D, old_S)
         new = rows_part(self.D.rows[index], None if self.S is None else self.S.rows[index])
-        for key, (_, system) in keep.items():
-            tree = HaarTree(*key)
-            a, c = new.project_tree(tree), old.project_tree(tree)
-            fixed = SystemPart(system.G + a.G - c.G, system.h + a.h - c.h, system.bb, system.n_pixels,
-                               system.channel_scale)
-            self.memo[key] = (self._versions(), fixed)
+        for key, (_, entry) in keep.items():
+            tree = HaarTree(*key[:2])
+            a, c = new._tree_entry(tree), old._tree_entry(tree)
+            if isinstance(entry, dict):  # per part: only the parts of the changed rows change
+                entry = {q: fix(e, a[q], c[q]) if q in a else e for q, e in entry.items()}
+            else:
+                entry = fix(entry, a, c)
+            self.memo[key] = (self._versions(), entry)
 
     def head(self, n: int, precision: str | None = None) -> "RowsPart":
         """The first n rows, standing for the same pixels (weights scaled up): a smaller sample when
@@ -248,7 +322,8 @@ class RowsPart:
         factor = self.w.sum() / max(self.w[:n].sum(), 1e-300)
         kd = self.kd[:n] if np.ndim(self.kd) == 2 else self.kd
         return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), kd, self.ks, self.b[:n],
-                        self.w[:n] * factor, self.n_pixels, precision or self.precision)
+                        self.w[:n] * factor, self.n_pixels, precision or self.precision,
+                        group=None if self.group is None else self.group[:n], group_scales=self.group_scales)
 
     def project(self, P) -> SystemPart:
         """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
@@ -287,10 +362,11 @@ class RowsPart:
     def gradient(self, light: np.ndarray, support=None) -> np.ndarray:
         """(N, C) T'W(b - T L) at a texel light (`support`: its non-zero texels)."""
         r = (self.w[:, None] * (self.b - self.predict(light, support)))
-        if np.ndim(self.kd) == 2:  # per row: T_c' r_c = D' (kd_c r_c)
-            out = (self.D.rows.T @ (self.kd * r).astype(np.float32)).astype(np.float64)
+        kd = self.kd_eff
+        if kd.ndim == 2:  # per row: T_c' r_c = D' (kd_c r_c)
+            out = (self.D.rows.T @ (kd * r).astype(np.float32)).astype(np.float64)
         else:
-            out = np.asarray(self.kd)[None, :] * (self.D.rows.T @ r.astype(np.float32)).astype(np.float64)
+            out = kd[None, :] * (self.D.rows.T @ r.astype(np.float32)).astype(np.float64)
         r = r.astype(np.float32)
         if self.S is not None:
             out += np.asarray(self.ks)[None, :] * (self.S.rows.T @ r).astype(np.float64)
@@ -301,7 +377,7 @@ class RowsPart:
         N = self.D.rows.shape[1]
         C = np.shape(self.kd)[-1]
         scale = self.channel_scale
-        ref = int(np.argmax(np.asarray(self.kd) + np.asarray(self.ks))) if scale is not None else 0
+        ref = int(np.argmax(self.kd_eff + np.asarray(self.ks))) if scale is not None else 0
         channels = [ref] if scale is not None else range(C)
         w = self.w.astype(np.float32)
         b = 256
@@ -386,6 +462,17 @@ class UnionPart:
     def combine(self, other):
         return UnionPart(self.parts + (other,))
 
+    def with_scales(self, scales):
+        return UnionPart(tuple(p.with_scales(scales) for p in self.parts))
+
+
+def with_scales(system, scales: np.ndarray):
+    """A sampled `LightSystem` of rows grouped by part with other part factors (its tree systems kept)."""
+    from .system import LightSystem
+
+    return LightSystem(system.fit.with_scales(scales), system.held_out.with_scales(scales), system.seconds,
+                       None if system.explore is None else system.explore.with_scales(scales))
+
 
 class TransportRows:
     """The transport of some used pixels (rows of a visibility), built once per material.
@@ -456,8 +543,8 @@ class TransportRows:
         v = self.vis
         D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
         for sl, V in v.blocks(8192, raw=True):
-            D[sl] = diffuse_transport(V, v.samples.normal[sl], v.cube, material if plastic else None,
-                                      v.samples.view[sl])
+            diffuse_transport(V, v.samples.normal[sl], v.cube, material if plastic else None, v.samples.view[sl],
+                              out=D[sl])
         pyramid = Pyramid(D, v.cube.tile_sizes)
         if key is None:
             self._diffuse = pyramid
@@ -487,11 +574,14 @@ class TransportRows:
         return self._specular[key][0]
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
-             n_rows: int | None = None, albedo: np.ndarray | None = None) -> RowsPart:
+             n_rows: int | None = None, albedo: np.ndarray | None = None, group: np.ndarray | None = None,
+             scales: np.ndarray | None = None) -> RowsPart:
         """The rows' system under `material` against `photo` ((n, C) values of these rows); with
         `n_rows`, of the first n_rows rows only, standing for the same pixels (weights scaled up, as
         `RowsPart.head`): a specular round's smaller system builds S for those rows alone. `albedo`:
-        (rows, 3) the rows' relative albedo (kd per row = material.kd x albedo), None: uniform."""
+        (rows, 3) the rows' relative albedo (kd per row = material.kd x albedo), None: uniform; with
+        `group` (rows,) and `scales` (parts, 3) it is each part's known albedo at factor 1, and the
+        rows render with albedo x scales[group] (`RowsPart.group`)."""
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         w = np.asarray(weights, np.float64)
         D = self.diffuse(material) if n == self.vis.n_pixels else self.diffuse(material).head(n)
@@ -500,4 +590,6 @@ class TransportRows:
         if albedo is not None:
             kd = kd[None, :] * np.asarray(albedo, float)[:n]
         return RowsPart(D, S, kd, np.asarray(material.ks, float),
-                        np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels))
+                        np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels),
+                        group=None if group is None else np.asarray(group, np.int64)[:n],
+                        group_scales=None if scales is None else np.array(scales, np.float64))

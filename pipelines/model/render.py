@@ -107,17 +107,17 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 
 
 def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, material: Material | None = None,
-                      views: np.ndarray | None = None) -> np.ndarray:
+                      views: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi, and for a
     `plastic` material that seen through its coating: x t(N.d_i) t(N.v) / (eta^2 (1 - Fdr)) (t at the
     texel's centre direction; `views` needed).
 
     V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`).
-    Formed in place, in blocks of rows on both cores."""
+    Formed in place (in `out` when given: (P, N) float32), in blocks of rows on both cores."""
     P, N = len(normals), cube.n_texels
     m = cube.vector_solid_angles.astype(np.float32)
     nrm = np.asarray(normals, np.float32)
-    out = np.empty((P, N), np.float32)
+    out = np.empty((P, N), np.float32) if out is None else out
     inv_pi = np.float32(1.0 / np.pi)
     plastic = material is not None and material.model == PLASTIC
     if plastic:

@@ -22,7 +22,8 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, write_json, write_light, write_residual,
                        write_view)
-from ..scene import MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_views
+from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_backend,
+                     scene_mesh, scene_views)
 from .visibility import visibility_stage
 
 VERSION = 12  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
@@ -82,8 +83,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     from pipelines.controllers import solve as ctl
     from pipelines.controllers import views as mv
     from pipelines.io import light_file, visibility_file
-    from pipelines.io.scene_files import load_mesh, read_camera
-    from pipelines.geometry import raycast
+    from pipelines.io.scene_files import read_camera
     from pipelines.model.parts import PartsOptions, parts_files
 
     given = given or set()
@@ -117,9 +117,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             data, layout = mv.combine(datas, [v.label for v in views], [(c.height, c.width) for c in cameras])
             stacked = mv.stacked_photo([ph for _, ph in photos], layout)
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
-            mesh = load_mesh(scene.mesh)
+            mesh = scene_mesh(scene.mesh)  # (read once when the visibility stage ran in this process)
             albedo = _pixel_albedo(scene, mesh, data, views, cameras, layout, parts, console) if parts.parts else None
-            backend = raycast.make_backend(mesh, vis_opts.backend)
+            backend = scene_backend(mesh, vis_opts.backend)
             result = ctl.solve_scene(data, stacked, material, opts, refl, given,
                                      backend if data.method == "adaptive" else None, photo_path,
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive",
@@ -280,8 +280,6 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     """Every basis on one scene at one resolution -> out/compare.json, compare.md, compare.png, ..."""
     from pipelines.controllers.compare import COLUMNS, compare_scene
-    from pipelines.geometry import raycast
-    from pipelines.io.scene_files import load_mesh
     from pipelines.io import visibility_file
 
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
@@ -298,7 +296,7 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
 
         def work(d) -> Ran:
             data = visibility_file.read_visibility(vis.path)
-            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
+            backend = scene_backend(scene_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
             result = compare_scene(data, photo, material, opts, photo_path, ConsoleProgress(console, "compare"),
                                    backend, adaptive=data.method == "adaptive")
             table = {"format": "wavelight-compare-1", "scene": str(scene.root), "resolution": vis_opts.resolution,

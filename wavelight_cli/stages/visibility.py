@@ -58,13 +58,16 @@ def load_samples(scene: SceneFiles, opts: VisibilityOptions, view: View):
     """(camera, mesh, ray caster, used-pixel samples, diagnostics) of a view."""
     from pipelines.controllers.visibility import used_pixels
     from pipelines.io import images
-    from pipelines.io.scene_files import load_mesh, read_camera, read_pose
+    from pipelines.io.scene_files import read_camera, read_pose
+
+    from ..scene import scene_backend, scene_mesh
 
     camera = read_camera(view.camera)
     pose = read_pose(view.pose)
-    mesh = load_mesh(scene.mesh)
+    mesh = scene_mesh(scene.mesh)
     mask = images.read_mask(view.mask) if view.mask else None
-    samples, diag, backend = used_pixels(camera, pose, mesh, mask, opts, view.pose, view.mask)
+    samples, diag, backend = used_pixels(camera, pose, mesh, mask, opts, view.pose, view.mask,
+                                         scene_backend(mesh, opts.backend))
     return camera, mesh, backend, samples, diag
 
 
