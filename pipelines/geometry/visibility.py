@@ -172,6 +172,7 @@ def compute_visibility(backend, samples: PixelSamples, cube: CubeMap, supersampl
 
 
 # -- adaptive visibility: cast where the image says the shadows change ------------------------------
+CAST_CHUNK = 1 << 16  # shadow rays gathered and traced together (per thread)
 BASE_PIXELS = 800  # the base grid of `coherent_visibility` has about this many pixels
 CHECK_ENTRIES = 20_000  # inferred (pixel, texel) entries re-cast to measure the inference's error
 
@@ -212,19 +213,32 @@ def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarr
     `origins` and `geo` are per pixel (already offset, in the backend's frame)."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from ..threads import parallel_blocks
+
     if len(pixel) == 0:
         return np.zeros(0, bool if supersample == 1 else np.uint8)
-    if supersample == 1:
-        dirs = cube.directions.astype(np.float32)[texel]
-        o = origins[pixel]
-        live = np.full(len(pixel), np.inf, np.float32)
-        kk = 1
-    else:
-        sub = cube.subtexel_directions(supersample).astype(np.float32)[texel]  # (n, kk, 3)
-        kk = sub.shape[1]
-        live = np.where(np.einsum("nk,nsk->ns", geo[pixel], sub) > 0, np.float32(np.inf), np.float32(-1.0)).ravel()
-        dirs = sub.reshape(-1, 3)
-        o = np.repeat(origins[pixel], kk, axis=0)
+    if supersample == 1:  # chunks of rays gathered and traced on each thread (no full-size copies)
+        dirs32 = cube.directions.astype(np.float32)
+        n = len(pixel)
+        out = np.empty(n, bool)
+
+        def run(mine):
+            for a in mine:
+                sl = slice(a, min(n, a + CAST_CHUNK))
+                out[sl] = ~backend.occluded_local(origins[pixel[sl]], dirs32[texel[sl]])
+
+        starts = list(range(0, n, CAST_CHUNK))
+        if backend.threads == 1 or len(starts) == 1:
+            run(starts)
+        else:
+            parallel_blocks(run, starts)
+        return out
+    # supersampled: each entry's sub-rays, those behind the geometric normal not traced
+    sub = cube.subtexel_directions(supersample).astype(np.float32)[texel]  # (n, kk, 3)
+    kk = sub.shape[1]
+    live = np.where(np.einsum("nk,nsk->ns", geo[pixel], sub) > 0, np.float32(np.inf), np.float32(-1.0)).ravel()
+    dirs = sub.reshape(-1, 3)
+    o = np.repeat(origins[pixel], kk, axis=0)
     bounds = np.linspace(0, len(o), min(backend.threads, len(o)) + 1).astype(int)
     parts = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
@@ -236,8 +250,6 @@ def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarr
     else:
         with ThreadPoolExecutor(len(parts)) as pool:
             visible = np.concatenate(list(pool.map(trace, parts)))
-    if supersample == 1:
-        return visible
     counts = (visible & (live > 0)).reshape(-1, kk).sum(axis=1)
     return np.round(255.0 * counts / kk).astype(np.uint8)
 
