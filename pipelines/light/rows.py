@@ -110,6 +110,16 @@ def _leaf_groups(tree: HaarTree) -> dict:
     return groups
 
 
+def _rhs(A: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """h = A'r in float64 for weighted rows A (float64, or float32 for a single-precision system:
+    then in float32 like its Gram matrix, with no float64 copy of A: a transposed cast strides
+    through memory, numpy's mixed float32/float64 product can take a non-BLAS loop, and a fresh
+    copy's page faults alone were measured at up to 1 s per level on the test machines)."""
+    if A.dtype == np.float64:
+        return A.T @ r
+    return (A.T @ r.astype(np.float32)).astype(np.float64)
+
+
 def _gram(A: np.ndarray) -> np.ndarray:
     """A'A (A float64: dsyrk; float32: ssyrk, accumulated in float32), symmetrised, in float64."""
     syrk = blas.dsyrk if A.dtype == np.float64 else blas.ssyrk
@@ -204,13 +214,13 @@ class RowsPart:
         if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
             ref = int(np.argmax(self.kd_eff + np.asarray(self.ks)))
             A = self._weighted(A_D, A_S, ref, dtype)
-            h = (A.T.astype(np.float64, copy=False) @ (self.b * sw[:, None])) * scale[None, :]
+            h = _rhs(A, self.b * sw[:, None]) * scale[None, :]
             return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
         G, h = [], []
         for c in range(np.shape(self.kd)[-1]):
             A = self._weighted(A_D, A_S, c, dtype)
             G.append(_gram(A))
-            h.append(A.T.astype(np.float64, copy=False) @ (self.b[:, c] * sw))
+            h.append(_rhs(A, self.b[:, c] * sw))
         return SystemPart(np.stack(G), np.column_stack(h), self.bb, self.n_pixels, None)
 
     def _kd(self, c: int) -> np.ndarray:
