@@ -1,14 +1,19 @@
-"""The cost of several photos against one: `wavelight solve` on a scene with views/ (e.g.
-tests/data/scenes/spot_textured_sun: main + left + right), from an empty cache, once with
-`--single-view` and once with every view, in the same run (same machine load), each on its own
-copy of the scene:
+"""The cost of several photos and several parts against one: `wavelight solve` on a scene with
+views/ and parts (e.g. tests/data/scenes/spot_textured_sun: main + left + right; Spot textured on a
+ground of another colour), from an empty cache, each configuration on its own copy of the scene,
+interleaved over `--repeats` rounds (same machine load):
 
-    python benchmarks/bench_views.py SCENE_DIR WORK_DIR [--resolution 32] [--reflectance lambert]
+    one view, one material   --single-view --single-material
+    one view, parts          --single-view
+    views, one material      --single-material
+    views, parts             (the defaults)
 
-Prints one JSON line: per configuration the wall time of the whole command (visibility of every
+    python benchmarks/bench_views.py SCENE_DIR WORK_DIR [--resolution 32] [--reflectance auto] [--repeats 1]
+
+Prints one JSON line: per configuration the wall times of the whole command (visibility of every
 view, solve, outputs), its used pixels, the solve's own time, the sun's angle to the truth's
-dominant direction and the probe errors (as bench_e2e.py), and the ratios 3 views / 1 view.
-Not a test: timings depend on the machine.
+dominant direction and the probe errors (as bench_e2e.py), and the ratios of the medians to the
+one-view, one-material configuration. Not a test: timings depend on the machine.
 """
 
 from __future__ import annotations
@@ -48,10 +53,17 @@ def run(scene: Path, work: Path, tag: str, extra: list[str], resolution: int, re
     obs = report.get("observability_by_view", {})
     return {"seconds": round(seconds, 2), "solve_seconds": round(report["seconds"], 2),
             "pixels": report["pixels"]["used"], "views": report["options"]["views"],
+            "parts": len(report["reflectance"].get("parts") or [None]), "model": report["material"]["model"],
             "held_out": report["held_out"]["mode"], "sun_angle_deg": angle,
             "probes": probe_errors(dst / "out" / "coefficients.h5", scene),
             "weakly_observed_union": obs.get("union", {}).get("weakly_observed"),
             "weakly_observed_main_alone": obs.get("views", {}).get("main", {}).get("weakly_observed")}
+
+
+CONFIGS = (("one view, one material", "1view-1mat", ["--single-view", "--single-material"]),
+           ("one view, parts", "1view-parts", ["--single-view"]),
+           ("views, one material", "views-1mat", ["--single-material"]),
+           ("views, parts", "views-parts", []))
 
 
 def main():
@@ -59,14 +71,24 @@ def main():
     ap.add_argument("scene", type=Path)
     ap.add_argument("work", type=Path)
     ap.add_argument("--resolution", type=int, default=32)
-    ap.add_argument("--reflectance", default="lambert")
+    ap.add_argument("--reflectance", default="auto")
+    ap.add_argument("--repeats", type=int, default=1)
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    one = run(args.scene, args.work, "1view", ["--single-view"], args.resolution, args.reflectance)
-    every = run(args.scene, args.work, "views", [], args.resolution, args.reflectance)
-    print(json.dumps({"scene": args.scene.name, "resolution": args.resolution, "one_view": one, "all_views": every,
-                      "ratio_seconds": round(every["seconds"] / one["seconds"], 2),
-                      "ratio_pixels": round(every["pixels"] / one["pixels"], 2)}))
+    runs: dict = {label: [] for label, _, _ in CONFIGS}
+    for _ in range(args.repeats):
+        for label, tag, extra in CONFIGS:
+            runs[label].append(run(args.scene, args.work, tag, extra, args.resolution, args.reflectance))
+    out = {}
+    for label, rs in runs.items():
+        seconds = sorted(r["seconds"] for r in rs)
+        out[label] = {**rs[0], "seconds": seconds, "median_seconds": seconds[len(seconds) // 2]}
+    base = out[CONFIGS[0][0]]
+    for label in out:
+        out[label]["ratio_seconds"] = round(out[label]["median_seconds"] / base["median_seconds"], 2)
+        out[label]["ratio_pixels"] = round(out[label]["pixels"] / base["pixels"], 2)
+    print(json.dumps({"scene": args.scene.name, "resolution": args.resolution, "reflectance": args.reflectance,
+                      "configs": out}))
 
 
 if __name__ == "__main__":

@@ -589,14 +589,55 @@ def materials_section(repeats: int) -> list[str]:
     return lines
 
 
+VIEW_SCENES = ("spot_textured_sun", "spot_textured_overcast")  # main + left + right; Spot textured on a coloured ground
+
+
+def views_section(repeats: int) -> list[str]:
+    """Parts and views: cost against one (issue 19): `bench_views.py` on the textured Mitsuba scenes."""
+    import tempfile
+
+    lines = ["## Parts and views: cost against one (issue 19)", "",
+             "`benchmarks/bench_views.py` per scene: the whole `wavelight -s SCENE solve` (defaults: R = 32, "
+             "`--reflectance auto`), from an empty cache, in four configurations on copies of the scene, "
+             f"interleaved, {repeats} run(s) each: the main photo alone with one uniform material "
+             "(`--single-view --single-material`), the main photo with the mesh's parts and Spot's texture "
+             "(`--single-view`), the three photos with one material (`--single-material`) and the three with "
+             "parts (the defaults). Time ratios against the first configuration; probe errors as the e2e "
+             "section's (scale-invariant, against the true light).", "",
+             "| scene | configuration | views | parts | pixels | seconds (min / med / max) | ratio (pixels) | "
+             "per view s | model | probes matte / glossy | sun |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    goals = []
+    with tempfile.TemporaryDirectory(prefix="wavelight-views-") as work:
+        for name in VIEW_SCENES:
+            r = measure([str(ROOT / "tests" / "data" / "scenes" / name), work, "--repeats", str(repeats)],
+                        "bench_views.py")
+            for label, c in r["configs"].items():
+                per_view = c["median_seconds"] / len(c["views"])
+                p = c.get("probes") or {}
+                probes = "-" if not p else f"{100 * p['diffuse']:.2f} % / {100 * p['glossy']:.2f} %"
+                sun = "-" if c.get("sun_angle_deg") is None else f"{c['sun_angle_deg']:.2f} deg"
+                lines.append(f"| {name} | {label} | {len(c['views'])} | {c['parts']} | {c['pixels']} | "
+                             f"{spread(c['seconds'])} | {c['ratio_seconds']:.2f}x ({c['ratio_pixels']:.2f}x) | "
+                             f"{per_view:.1f} | {c['model']} | {probes} | {sun} |")
+                if label == "views, parts":
+                    goals.append((name, per_view))
+            print(f"views {name}: " + ", ".join(f"{k} {v['median_seconds']:.1f} s" for k, v in r["configs"].items()),
+                  flush=True)
+    worst = max(p for _, p in goals)
+    lines += ["", f"**Goal** (the speed issue's 320x240 goal per view: <= 3 s of the whole command per view): "
+                  f"{'met' if worst <= 3.0 else 'NOT met'} — views with parts: "
+                  + ", ".join(f"{n} {p:.1f} s per view" for n, p in goals) + "."]
+    return lines
+
+
 SECTIONS = {"visibility": visibility_section, "solve": solve_section, "reflectance": reflectance_section,
             "peer": peer_section, "bases": bases_section, "scaling": scaling_section, "e2e": e2e_section,
-            "materials": materials_section}
+            "materials": materials_section, "views": views_section}
 
 
 TITLES = {"visibility": "Visibility throughput", "solve": "Light solve", "reflectance": "Reflectance (",
           "peer": "Peer:", "bases": "Bases and levels", "scaling": "Scaling", "e2e": "Whole solve",
-          "materials": "Glossy materials"}  # how each section's heading starts (its function's first line)
+          "materials": "Glossy materials", "views": "Parts and views"}  # how each section's heading starts (its function's first line)
 
 
 def _existing_sections(path: Path) -> dict[str, str]:

@@ -146,10 +146,15 @@ def _quiet():
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
-def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precision):
-    """Lambertian rows of several parts keep each part's tree system at factor 1: the system under
-    any factors is the one of rows whose kd has those factors applied, and `with_scales` serves it
-    from the kept systems (the rows' leaf sums are not formed again)."""
+@pytest.mark.parametrize("material", [
+    Material(kd=(0.9, 0.7, 0.5)),
+    Material(kd=(0.9, 0.7, 0.5), ks=(0.4, 0.3, 0.2), shininess=30.0, model="blinn-phong"),
+], ids=["lambert", "blinn-phong"])
+def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precision, material):
+    """Rows of several parts keep each part's tree system at factor 1 (with a specular term, its
+    diffuse, cross and specular pieces): the system under any factors is the one of rows whose kd
+    has those factors applied, and `with_scales` serves it from the kept pieces (the rows' leaf
+    sums are not formed again)."""
     from pipelines.light import rows as rows_module
 
     _, vis = _small_vis(mitsuba_scene)
@@ -160,7 +165,6 @@ def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precisi
     base = rng.uniform(0.3, 1.2, (len(rows), 3))
     group = rng.integers(0, 3, len(rows))
     s1, s2 = rng.uniform(0.5, 2.0, (3, 3)), rng.uniform(0.5, 2.0, (3, 3))
-    material = Material(kd=(0.9, 0.7, 0.5))
     tr = TransportRows(vis, rows)
     grouped = tr.part(material, photo, weights, 5000, albedo=base, group=group, scales=s1)
     grouped = grouped if precision == "double" else grouped.head(len(rows), "single")

@@ -184,7 +184,8 @@ class _Systems:
         a = self.albedo
         # several parts: the rows keep each part's known albedo and the factors apart (`RowsPart.group`),
         # so that a Lambertian system serves other factors without a pass over the rows (`rows.with_scales`)
-        grouped = {} if a is None else {"scales": a.scales}
+        # (a specular system's pieces per part pay off only for a round's system, re-solved under new factors)
+        grouped = {} if a is None else {"scales": a.scales, "split_specular": round_rows is not None}
         fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows,
                                  None if a is None else a.base[fs.rows],
                                  group=None if a is None else a.part[fs.rows], **grouped)
@@ -537,7 +538,14 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             if change < PART_TOL or k == PART_ROUNDS - 1:
                 sol, ne = solve_light_only(m)
                 break
-            ne = systems.system(m) if not m.specular or options.exact else systems.system(m, ROUND_ROWS)
+            if options.exact:
+                ne = systems.system(m)
+            elif k == 0:
+                ne = systems.system(m) if not m.specular else systems.system(m, ROUND_ROWS)
+            else:  # the same rows under the new factors: their tree systems are kept per part
+                from ..light.rows import with_scales
+
+                ne = with_scales(ne, albedo.scales)
             quick = bases.refit(ne, vis.cube, first)
             if quick is None:
                 sol, ne = solve_light_only(m)

@@ -157,6 +157,9 @@ class RowsPart:
     # kept per part, so that it serves any factors: G_c = sum_q s_qc^2 G_qc, h_c = sum_q s_qc h_qc
     group: np.ndarray | None = None
     group_scales: np.ndarray | None = None
+    # with a specular term the pieces cost ~3x one projection (diffuse, cross and specular products):
+    # worth it for a system re-solved under many factors (a specular round's), not for one explored once
+    split_specular: bool = True
 
     @property
     def n_rows(self) -> int:
@@ -240,53 +243,86 @@ class RowsPart:
 
     @property
     def _per_group(self) -> bool:
-        """Tree systems kept per part (Lambertian rows grouped by part), else for the factors as they are."""
-        return self.group is not None and self.S is None
+        """Tree systems kept per part (rows grouped by part), else for the rows' kd as it is."""
+        return self.group is not None and (self.S is None or self.split_specular)
 
     def _tree_key(self, tree: HaarTree) -> tuple:
         key = (tree.tile_sizes, tree.subdivided)
-        if self.group is not None and not self._per_group:  # (a specular term: for these factors only)
+        if self.group is not None and not self._per_group:  # (kept for these factors only)
             key += (np.asarray(self.group_scales, np.float64).tobytes(),)
         return key
 
     def _tree_entry(self, tree: HaarTree):
-        """The memo's value for a tree: its SystemPart, or per part {q: SystemPart at factor 1}."""
+        """The memo's value for a tree: its SystemPart, or per part q the pieces of its rows' system at
+        factor 1 (`_group_pieces`)."""
         key = self._tree_key(tree)
         hit = self.memo.get(key)
         if hit is not None and hit[0] == self._versions():
             self.memo.move_to_end(key)
             return hit[1]
         A_D = self.D.leaf_sums(tree)
+        A_S = None if self.S is None else self.S.leaf_sums(tree)
         if self._per_group:
-            out = {}
-            for q in np.unique(self.group):
-                sel = np.flatnonzero(self.group == q)
-                sub = RowsPart(None, None, self.kd[sel], self.ks, self.b[sel], self.w[sel], len(sel), self.precision)
-                out[int(q)] = sub._system(A_D[sel], None)
+            out = {int(q): self._group_pieces(A_D, A_S, np.flatnonzero(self.group == q)) for q in np.unique(self.group)}
         else:
-            out = self._system(A_D, None if self.S is None else self.S.leaf_sums(tree))
+            out = self._system(A_D, A_S)
         self.memo[key] = (self._versions(), out)
         while len(self.memo) > MEMO_TREES:  # the least recently used go (memory: leaves^2 per tree, part, channel)
             self.memo.popitem(last=False)
+        return out
+
+    def _group_pieces(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray) -> dict:
+        """The system of rows `sel` (one part) split so that any factor s of the part and the material's
+        ks give it: per channel c, G_c = s_c^2 DD_c + s_c ks_c (X_c + X_c') + ks_c^2 SS and
+        h_c = s_c hD_c + ks_c hS_c, with a_c = sqrt(w) kd_c A_D (kd: the part's known albedo x the
+        material's kd, factor 1) and t = sqrt(w) A_S: DD_c = a_c'a_c, X_c = a_c't, SS = t't,
+        hD_c = a_c'b_c sqrt(w), hS_c = t'b_c sqrt(w)."""
+        dtype = np.float64 if self.precision == "double" else np.float32
+        sw = np.sqrt(self.w[sel])
+        b = self.b[sel] * sw[:, None]
+        C = np.shape(self.kd)[-1]
+        kd = np.asarray(self.kd, np.float64)
+        kd = kd[sel] if kd.ndim == 2 else np.broadcast_to(kd, (len(sel), C))
+        t = None if A_S is None else A_S[sel].astype(dtype) * sw.astype(dtype)[:, None]
+        out = {"DD": [], "hD": [], "X": [], "bb": (b**2).sum(axis=0)}
+        for c in range(C):
+            a = A_D[sel].astype(dtype) * (sw * kd[:, c]).astype(dtype)[:, None]
+            out["DD"].append(_gram(a))
+            out["hD"].append(_rhs(a, b[:, c]))
+            if t is not None:
+                out["X"].append((a.T @ t).astype(np.float64))
+        out["DD"], out["hD"] = np.stack(out["DD"]), np.column_stack(out["hD"])
+        out["X"] = np.stack(out["X"]) if t is not None else None
+        out["SS"] = None if t is None else _gram(t)
+        out["hS"] = None if t is None else np.column_stack([_rhs(t, b[:, c]) for c in range(C)])
         return out
 
     def _combined(self, entry) -> SystemPart:
         if not isinstance(entry, dict):
             return entry
         s = np.asarray(self.group_scales, np.float64)
+        ks = np.asarray(self.ks, np.float64)
         C = s.shape[1]
-        G = sum(np.stack([s[q, c] ** 2 * part.gram(c) for c in range(C)]) for q, part in entry.items())
-        h = sum(part.h * s[q][None, :] for q, part in entry.items())
+        G, h = 0.0, 0.0
+        for q, e in entry.items():
+            Gq = s[q][:, None, None] ** 2 * e["DD"]
+            hq = e["hD"] * s[q][None, :]
+            if e["X"] is not None:
+                for c in range(C):
+                    if ks[c] != 0:
+                        Gq[c] += s[q, c] * ks[c] * (e["X"][c] + e["X"][c].T) + ks[c] ** 2 * e["SS"]
+                hq = hq + e["hS"] * ks[None, :]
+            G, h = G + Gq, h + hq
         return SystemPart(G, h, self.bb, self.n_pixels, None)
 
     def project_tree(self, tree: HaarTree) -> SystemPart:
         return self._combined(self._tree_entry(tree))
 
     def group_systems(self, tree: HaarTree) -> dict:
-        """Per part q, its rows' tree system at factor 1 ({q: SystemPart}; Lambertian grouped rows)."""
+        """Per part q, the Lambertian system of its rows at factor 1 ({q: SystemPart})."""
         if not self._per_group:
-            raise ValueError("group_systems needs Lambertian rows grouped by part")
-        return self._tree_entry(tree)
+            raise ValueError("group_systems needs rows grouped by part")
+        return {q: SystemPart(e["DD"], e["hD"], e["bb"], 0, None) for q, e in self._tree_entry(tree).items()}
 
     def correct(self, index: np.ndarray, old_D: np.ndarray, old_S: np.ndarray | None, stale: tuple) -> None:
         """Rows `index` of D (and S) were replaced in place (`Pyramid.set_rows`): their previous
@@ -308,11 +344,15 @@ class RowsPart:
         def rows_part(D, S):
             return RowsPart(Pyramid(np.ascontiguousarray(D), self.D.tile_sizes),
                             None if S is None else Pyramid(np.ascontiguousarray(S), self.D.tile_sizes),
-                            kd, self.ks, b, w, 0, self.precision, group=group, group_scales=self.group_scales)
+                            kd, self.ks, b, w, 0, self.precision, group=group, group_scales=self.group_scales,
+                            split_specular=self.split_specular)
 
         def fix(system, a, c):
             return SystemPart(system.G + a.G - c.G, system.h + a.h - c.h, system.bb, system.n_pixels,
                               system.channel_scale)
+
+        def fix_pieces(e, a, c):
+            return {k: (v if v is None or k == "bb" else v + a[k] - c[k]) for k, v in e.items()}
 
         old = rows_part(old_D, old_S)
         new = rows_part(self.D.rows[index], None if self.S is None else self.S.rows[index])
@@ -320,7 +360,7 @@ class RowsPart:
             tree = HaarTree(*key[:2])
             a, c = new._tree_entry(tree), old._tree_entry(tree)
             if isinstance(entry, dict):  # per part: only the parts of the changed rows change
-                entry = {q: fix(e, a[q], c[q]) if q in a else e for q, e in entry.items()}
+                entry = {q: fix_pieces(e, a[q], c[q]) if q in a else e for q, e in entry.items()}
             else:
                 entry = fix(entry, a, c)
             self.memo[key] = (self._versions(), entry)
@@ -333,7 +373,8 @@ class RowsPart:
         kd = self.kd[:n] if np.ndim(self.kd) == 2 else self.kd
         return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), kd, self.ks, self.b[:n],
                         self.w[:n] * factor, self.n_pixels, precision or self.precision,
-                        group=None if self.group is None else self.group[:n], group_scales=self.group_scales)
+                        group=None if self.group is None else self.group[:n], group_scales=self.group_scales,
+                        split_specular=self.split_specular)
 
     def project(self, P) -> SystemPart:
         """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
@@ -564,12 +605,16 @@ class TransportRows:
 
     def specular(self, material, n_rows: int | None = None) -> Pyramid:
         """S (ks = 1) of `material`'s lobe for the first `n_rows` rows (all by default); the latest one
-        is kept (memory)."""
+        is kept (memory), and serves fewer rows of the same lobe as its head."""
         from dataclasses import replace
 
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         unit = replace(material, kd=(1.0, 1.0, 1.0), ks=(1.0, 1.0, 1.0), extra={})
-        key = (unit.model, unit.shininess, unit.roughness, unit.ior, unit.distribution, n)
+        lobe = (unit.model, unit.shininess, unit.roughness, unit.ior, unit.distribution)
+        key = lobe + (n,)
+        for (*kept_lobe, kept_n), (pyramid, _) in self._specular.items():
+            if tuple(kept_lobe) == lobe and kept_n > n:
+                return pyramid.head(n)
         if key not in self._specular:
             from ..model.render import specular_transport
 
@@ -585,7 +630,7 @@ class TransportRows:
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
              n_rows: int | None = None, albedo: np.ndarray | None = None, group: np.ndarray | None = None,
-             scales: np.ndarray | None = None) -> RowsPart:
+             scales: np.ndarray | None = None, split_specular: bool = True) -> RowsPart:
         """The rows' system under `material` against `photo` ((n, C) values of these rows); with
         `n_rows`, of the first n_rows rows only, standing for the same pixels (weights scaled up, as
         `RowsPart.head`): a specular round's smaller system builds S for those rows alone. `albedo`:
@@ -602,4 +647,5 @@ class TransportRows:
         return RowsPart(D, S, kd, np.asarray(material.ks, float),
                         np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels),
                         group=None if group is None else np.asarray(group, np.int64)[:n],
-                        group_scales=None if scales is None else np.array(scales, np.float64))
+                        group_scales=None if scales is None else np.array(scales, np.float64),
+                        split_specular=split_specular)
