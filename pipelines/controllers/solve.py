@@ -456,6 +456,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     """
     from ..light import bases
     from ..light import solution as ls
+    from ..light.rows import with_scales
     from ..model import reflectance as rf
     from ..model.render import render
 
@@ -509,8 +510,6 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                 albedo.scales = new
                 last = k == 1 or change < 10 * PART_TOL
                 if not last and not options.exact:
-                    from ..light.rows import with_scales
-
                     ne = with_scales(ne, albedo.scales)
                     quick = bases.refit(ne, vis.cube, sol)
                     if quick is not None:
@@ -543,8 +542,6 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             elif k == 0:
                 ne = systems.system(m) if not m.specular else systems.system(m, ROUND_ROWS)
             else:  # the same rows under the new factors: their tree systems are kept per part
-                from ..light.rows import with_scales
-
                 ne = with_scales(ne, albedo.scales)
             quick = bases.refit(ne, vis.cube, first)
             if quick is None:
@@ -564,8 +561,6 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         if previous is not None and albedo is not None and not options.exact and not m.specular:
             # the Lambertian system of the part factors before: its tree systems are kept per part, so
             # the levels are explored again under the new factors without a pass over the rows
-            from ..light.rows import with_scales
-
             ne = with_scales(previous, albedo.scales)
             return full_solve(m, ne), ne
         if not options.exact and m.specular:
