@@ -493,7 +493,8 @@ def test_compare(solved, solved_copy):
 
 # -- 6. saturated pixels -------------------------------------------------------------------------
 
-def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
+def _clipped_png(scene) -> int:
+    """The scene's photo as an 8-bit PNG exposed so that ~5 % of the used pixels clip; returns how many."""
     import OpenImageIO as oiio
 
     from pipelines.io import images
@@ -507,8 +508,13 @@ def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
     clipped = (codes == 255).any(axis=2)[rows, cols]
     n_clipped = int(clipped.sum())
     assert 0.03 < n_clipped / len(rows) < 0.07, n_clipped / len(rows)  # measured 5.0 % (718 pixels)
+    return n_clipped
 
-    result = invoke(scene, "solve", "--resolution", RES)
+
+def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
+    rows, _ = _used_pixels(scene)
+    n_clipped = _clipped_png(scene)
+    result = invoke(scene, "solve", "--resolution", RES, "--clipped", "drop")
     err = ok(result)
     assert f"({n_clipped} saturated pixels left out)" in err
     rep = _report(scene)
@@ -520,6 +526,31 @@ def test_saturated_pixels_of_an_8bit_photo_are_left_out(scene):
     assert rep["relit"]["compared_pixels"] == px["used"] - n_clipped
     assert rep["relit"]["relative_rmse_vs_photo"] < 0.06  # measured 4.13 %
     assert manifest(scene)["stages"]["solve"]["input_paths"]["photo"] == "image.png"
+    assert rep["robust"]["clipped"] == "left out"
+
+
+def test_saturated_pixels_are_lower_bounds_by_default(scene):
+    """The same clipped PNG with the defaults: the clipped pixels join the fit as lower bounds in the
+    robust pass; the light's power stays that of the drop run's, and the final light leaves few
+    clipped pixels below their bound. (On this Lambertian scene the unclipped pixels already tell the
+    light: dropping the clipped ones costs little, 2.03 % against 1.94 % diffuse probe error with half
+    of the pixels clipped; the bounds matter where a highlight's core clips: tests/test_photometric_data.py.)"""
+    rows, _ = _used_pixels(scene)
+    n_clipped = _clipped_png(scene)
+    err = ok(invoke(scene, "solve", "--resolution", RES, "--clipped", "drop"))
+    dropped = _report(scene)
+    p_drop = _power(_raw_exr(scene / "out" / "light_latlong.exr"))
+    err = ok(invoke(scene, "solve", "--resolution", RES))
+    assert f"({n_clipped} saturated pixels fitted as lower bounds after the first solve)" in err
+    rep = _report(scene)
+    px = rep["pixels"]
+    assert px["saturated_as_lower_bounds"] == n_clipped and px["saturated_excluded"] == 0
+    assert px["fit"] + px["held_out"] == px["used"] - n_clipped  # (the photo's own fit / held-out split)
+    rob = rep["robust"]
+    assert rob["clipped"] == "lower bounds" and rob["clipped_pixels"] == n_clipped
+    assert rob["clipped_pixels_below_bound"] < 0.15 * n_clipped, rob
+    np.testing.assert_allclose(_power(_raw_exr(scene / "out" / "light_latlong.exr")) / p_drop, 1.0, rtol=0.03)
+    assert rep["relit"]["relative_rmse_vs_photo"] < 1.05 * dropped["relit"]["relative_rmse_vs_photo"]
 
 
 def test_linear_input_flag(solved, solved_copy):

@@ -11,6 +11,7 @@ import json
 import os
 import sys
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -538,6 +539,13 @@ def reflectance_options(f):
                    "fitted colour.")
 @click.option("--texture-colour", is_flag=True,
               help="Fit an RGB colour per part on top of its texture (default: one grey scale per textured part).")
+@click.option("--robust/--no-robust", default=True, show_default=True,
+              help="Down-weight the few pixels the model cannot explain (a dust speck, a mis-registered rim, a "
+                   "highlight no lobe fits: at most 2 %, beyond 4 noise scales) and solve again; "
+                   "solve_report.json's 'robust' says how many.")
+@click.option("--clipped", type=click.Choice(["bound", "drop"]), default="bound", show_default=True,
+              help="Clipped (saturated) pixels of 8/16-bit photos: lower bounds of the light's prediction "
+                   "(fitted in the robust pass), or left out.")
 @solve_options
 @reflectance_options
 @material_options("solve")
@@ -546,8 +554,8 @@ def reflectance_options(f):
 @force_option
 @views_options
 @click.pass_obj
-def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, reflectance, max_rounds,
-              min_specular_gain, exposure, force, **kw):
+def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, robust, clipped, reflectance,
+              max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
     reflectance.json, solve_report.json, ..."""
     from pipelines.controllers.solve import ReflectanceOptions
@@ -562,7 +570,7 @@ def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_c
     if reflectance is None:
         reflectance = "given" if given & {"file", "model"} else "auto"
     refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
-    opts = _solve_opts(kw, basis, sh_nonnegative)
+    opts = replace(_solve_opts(kw, basis, sh_nonnegative), robust=robust, clipped=clipped)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
                       refl, given, select, PartsOptions(not single_material, not no_texture, texture_colour))
 
@@ -585,7 +593,7 @@ def compare_cmd(obj, force, **kw):
     material, fitted = _material_or_fitted(kw, scene)
     if fitted is not None:
         obj["console"].say(f"compare: material from {fitted.name} (fitted by solve): {material_text(material)}")
-    opts = _solve_opts(kw)
+    opts = replace(_solve_opts(kw), robust=False, clipped="drop")  # (compare: the bases on the plain fit)
     solve.compare_stage(scene, _vis_opts(kw), opts, material, obj["console"], force, obj["lock_wait"])
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 from ..light.bases import COMPARE_RUNS
 from ..model.materials import Material
-from .solve import Progress, SolveOptions, _Systems, bright_texels, prepare_photo, recast_bright
+from .solve import Progress, SolveOptions, _Systems, bright_texels, pixel_counts, prepare_photo, recast_bright
 
 COLUMNS = {"fit_rmse": "relative RMSE over the fit pixels at the chosen level",
            "held_out_rmse": "relative RMSE over the held-out pixels (not fitted)",
@@ -63,8 +63,7 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
         progress.note(f"{sol.basis}: {sol.n_coefficients} coefficients, {100 * sol.fit_rmse:.2f} % in {sol.seconds:.2f} s")
     n = len(observability)
     n_unobs = int(unobservable.sum())
-    return CompareResult(rows, lights, {"used": int(len(values)), "saturated_excluded": int((~usable).sum()),
-                                        "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
+    return CompareResult(rows, lights, pixel_counts(usable, held, False),
                          systems.sample_info,
                          getattr(ne, "seconds", 0.0),
                          {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),

@@ -24,6 +24,8 @@ from ..metrics import versus_photo
 from ..light.bases import REFINED, LightOptions
 from ..model.materials import PLASTIC, SPECULAR_MODELS, Material
 
+CLIPPED_MODES = ("bound", "drop")
+CLIP_VALUE = 1.0 - 1e-6  # an integer photo's maximum code reads as 1 (io.images)
 REFLECTANCE_MODES = ("auto", "lambert", "blinn-phong", "phong", "phong-classic", "plastic", "given")
 DEFAULT_START_KS = 0.25  # start of a specular fit: ks = 0.25 x mean(kd), unless --ks is given
 DEFAULT_START_SHININESS = 20.0  # and n = 20, unless --shininess is given
@@ -35,6 +37,9 @@ LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of t
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
+ROBUST_ROUNDS = 3  # the robust pass: weights -> light (and reflectance) again, at most this many times
+ROBUST_TRIGGER = 0.01  # ... while the new weights and targets move at least this share of the squared error
+ROBUST_LM_ROUNDS = 2  # a fitted specular term is refitted under the robust weights in this many LM rounds
 PART_ROUNDS = 12  # several parts / textures: light <-> per-part albedo scales, at most this many rounds
 PART_TOL = 1e-3  # ... until no part's scale changes by more than this (relative)
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -47,19 +52,28 @@ class SolveOptions:
     held_out: float = 0.1
     linear_input: bool = False
     exact: bool = False  # dense normal equations over every used pixel (the reference route)
+    robust: bool = True  # down-weight the few pixels the model cannot explain, clipped pixels as lower bounds
+    clipped: str = "bound"  # clipped (saturated) channels: lower bounds ("bound"), or left out ("drop")
 
     def check(self, resolution: int, hemisphere: bool = True) -> None:
         self.light.check(resolution, hemisphere)
         if not 0 <= self.held_out <= 0.5:
             raise InputError(f"--held-out must be a fraction from 0 to 0.5, got {self.held_out}", None,
                              "use e.g. --held-out 0.1")
+        if self.clipped not in CLIPPED_MODES:
+            raise InputError(f"unknown --clipped {self.clipped!r}", None, f"use one of {', '.join(CLIPPED_MODES)}")
         if self.light.levels == "auto" and self.held_out == 0 and self.light.basis in REFINED:
             raise InputError("--levels auto needs held-out pixels, but --held-out is 0", None,
                              "use --held-out 0.1, or give a fixed --levels N")
 
     def cache_params(self) -> dict:
         return {**self.light.cache_params(), "held_out": self.held_out, "linear_input": self.linear_input,
-                "exact": self.exact}
+                "exact": self.exact, "robust": self.robust, "clipped": self.clipped}
+
+    @property
+    def bounds(self) -> bool:
+        """Whether clipped pixels are fitted as lower bounds (the sampled route's robust pass)."""
+        return self.robust and self.clipped == "bound" and not self.exact
 
 
 @dataclass(frozen=True)
@@ -146,13 +160,18 @@ def material_text(m: Material) -> str:
 class _Systems:
     """Builds the light system of a material on the chosen route (dense, or sampled rows)."""
 
-    def __init__(self, vis, values, usable, held, options: SolveOptions, progress: Progress, albedo=None):
+    def __init__(self, vis, values, usable, held, options: SolveOptions, progress: Progress, albedo=None,
+                 clipped=None):
         from ..light import sampling
 
         self.vis, self.values, self.usable, self.held = vis, values, usable, held
         self.albedo = albedo  # model.parts.PixelAlbedo or None (uniform)
         self.options, self.progress = options, progress
         self.sample_info = None
+        # what the rows are fitted to: the photo, and a clipped channel's lower bound lifted to the
+        # prediction where that is brighter in a pixel with another channel below its bound (`robust`)
+        self.targets = values
+        self.clipped = np.zeros(values.shape, bool) if clipped is None else np.asarray(clipped, bool)
         if options.exact:
             return
         from ..light.rows import TransportRows
@@ -161,6 +180,15 @@ class _Systems:
         change = sampling.visibility_change(pixels, np.asarray(vis.stored), vis.encoding)
         self.fit_sample = sampling.fit_sample(pixels, usable & ~held, change)
         self.held_sample = sampling.held_out_sample(pixels, usable & held)
+        # clipped pixels (lower bounds) follow the fit sample, every one standing for itself, at weight 0
+        # until the robust pass (`robust`) gives them theirs: the first solve is the one without them.
+        # Held-out ones too: a held-out error is a squared error, which a bound's target (the light's
+        # prediction where that is brighter) would bias towards the light it came from
+        bounds = np.flatnonzero(self.clipped.any(axis=1) & ~usable) if options.bounds else np.zeros(0, np.int64)
+        self.fit_sample = sampling.with_bounds(self.fit_sample, bounds)
+        # the rows' weights: the sample's (the pixels each stands for) x the robust weight
+        self.fit_w = np.where(np.isin(self.fit_sample.rows, bounds), 0.0, self.fit_sample.weights)
+        self.held_w = self.held_sample.weights
         self.fit_rows = TransportRows(vis, self.fit_sample.rows)
         self.held_rows = TransportRows(vis, self.held_sample.rows)
         self.sample_info = {"fit": self.fit_sample.summary(), "held_out": self.held_sample.summary(),
@@ -186,10 +214,10 @@ class _Systems:
         # so that a Lambertian system serves other factors without a pass over the rows (`rows.with_scales`)
         # (a specular system's pieces per part pay off only for a round's system, re-solved under new factors)
         grouped = {} if a is None else {"scales": a.scales, "split_specular": round_rows is not None}
-        fit = self.fit_rows.part(material, self.values[fs.rows], fs.weights, fs.candidates, round_rows,
+        fit = self.fit_rows.part(material, self.targets[fs.rows], self.fit_w, fs.candidates, round_rows,
                                  None if a is None else a.base[fs.rows],
                                  group=None if a is None else a.part[fs.rows], **grouped)
-        held = self.held_rows.part(material, self.values[hs.rows], hs.weights, hs.candidates,
+        held = self.held_rows.part(material, self.targets[hs.rows], self.held_w, hs.candidates,
                                    albedo=None if a is None else a.base[hs.rows],
                                    group=None if a is None else a.part[hs.rows], **grouped)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
@@ -204,17 +232,26 @@ class _Systems:
         pred = (D @ np.asarray(light, np.float32)).astype(np.float64) * np.asarray(kd)[None, :]
         if self.albedo is not None:
             pred *= self.albedo.values(fs.rows)
-        values = self.values[fs.rows]
+        values = self.targets[fs.rows]
+        fw, hw = self.fit_w, self.held_w
         excess = (values - pred).sum(axis=1) / np.maximum(values.sum(axis=1), 1e-12)
+        excess[fw == 0] = -np.inf  # (rows without weight: rejected, or clipped before the robust pass)
+        excess[(fw > 0) & self.clipped[fs.rows].any(axis=1)] = np.inf  # lower bounds: where the highlight's core is
         top = np.argsort(-excess, kind="stable")[:n_fit // 4]
         others = np.setdiff1d(np.arange(len(fs.rows)), top)  # in sample order: every head is spread
         rest = others[: max(0, n_fit - len(top))]
-        w_rest = fs.weights[rest] * fs.weights[others].sum() / max(fs.weights[rest].sum(), 1e-300)
+        w_rest = fw[rest] * fw[others].sum() / max(fw[rest].sum(), 1e-300)
         nh = min(n_held, len(hs.rows))
-        w_held = hs.weights[:nh] * hs.weights.sum() / max(hs.weights[:nh].sum(), 1e-300)
+        w_held = hw[:nh] * hw.sum() / max(hw[:nh].sum(), 1e-300)
         return (np.concatenate([fs.rows[top], fs.rows[rest], hs.rows[:nh]]),
-                np.concatenate([fs.weights[top], w_rest, w_held]))
+                np.concatenate([fw[top], w_rest, w_held]))
 
+    def robust(self, weights: np.ndarray, targets: np.ndarray) -> None:
+        """Fit the sampled rows with per-pixel robust weights (P,) and targets (P, C) (`light.robust`:
+        the pixel's weight multiplies the pixels its row stands for)."""
+        self.targets = targets
+        self.fit_w = self.fit_sample.weights * weights[self.fit_sample.rows]
+        self.held_w = self.held_sample.weights * weights[self.held_sample.rows]
     def part_scales(self, light: np.ndarray, material: Material) -> np.ndarray:
         """The per-part albedo scales that fit the photo best under `light` (`parts.fit_scales`), over
         the rows the light is fitted to (the fit sample; on the exact route every fit pixel)."""
@@ -229,13 +266,13 @@ class _Systems:
             diffuse = render(self.vis, L, replace(material, ks=(0.0, 0.0, 0.0)))[rows]
             spec = render(self.vis, L, replace(material, kd=(0.0, 0.0, 0.0)))[rows] if material.specular else None
         else:
-            rows, weights = self.fit_sample.rows, self.fit_sample.weights
+            rows, weights = self.fit_sample.rows, self.fit_w
             Lf = L.astype(np.float32)
             diffuse = kd * (self.fit_rows.diffuse(material).rows @ Lf).astype(np.float64)
             spec = None
             if material.specular:
                 spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
-        return fit_scales(self.albedo, rows, weights, diffuse, spec, self.values[rows])
+        return fit_scales(self.albedo, rows, weights, diffuse, spec, self.targets[rows])
 
     def part_leaf_systems(self, tree, material: Material, system=None) -> list:
         """Per part, the leaf-space normal equations of its fit rows (G (3, k, k), h (k, 3), bb (3,))
@@ -270,8 +307,8 @@ class _Systems:
         fs = self.fit_sample
         A = self.fit_rows.diffuse(material).leaf_sums(tree)
         kd = np.asarray(material.kd, float)[None, :]
-        base, b, part = a.base[fs.rows] * kd, self.values[fs.rows], a.part[fs.rows]
-        sw = np.sqrt(fs.weights)
+        base, b, part = a.base[fs.rows] * kd, self.targets[fs.rows], a.part[fs.rows]
+        sw = np.sqrt(self.fit_w)
         for q in range(len(a.parts.parts)):
             sel = np.flatnonzero(part == q)
             if not len(sel):
@@ -282,7 +319,7 @@ class _Systems:
                 M = A[sel] * (sw[sel] * base[sel, c]).astype(np.float32)[:, None]
                 G.append(_gram(M))
                 h.append(M.T.astype(np.float64) @ (sw[sel] * b[sel, c]))
-            out.append((np.stack(G), np.column_stack(h), (fs.weights[sel, None] * b[sel] ** 2).sum(axis=0)))
+            out.append((np.stack(G), np.column_stack(h), (self.fit_w[sel, None] * b[sel] ** 2).sum(axis=0)))
         return out
 
     def recast(self, backend, texels: np.ndarray, system=None) -> dict:
@@ -432,6 +469,64 @@ def prepare_photo(vis, photo, options: SolveOptions, photo_path=None, held_out: 
     return values, ~saturated, held
 
 
+def pixel_counts(usable: np.ndarray, held: np.ndarray, bounds: bool) -> dict:
+    """solve_report.json's `pixels`: used, saturated (left out, or lower bounds), fit and held out."""
+    n_sat = int((~usable).sum())
+    return {"used": int(len(usable)), "saturated": n_sat, "saturated_excluded": 0 if bounds else n_sat,
+            "saturated_as_lower_bounds": n_sat if bounds else 0,
+            "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())}
+
+
+def robust_counts(w, counted, bound, clipped, values, relit, usable) -> dict:
+    """What the robust weights `w` (P,) of the final pass do over every used pixel."""
+    from ..metrics import relative_rmse
+
+    from ..light.robust import below_bound
+
+    below = bound & below_bound(values, clipped, relit)
+    judged = counted & ~(bound & ~below)  # (a clipped pixel the light predicts at least as bright: satisfied)
+    out = {"pixels": int(counted.sum()), "down_weighted_pixels": int((judged & (w < 1)).sum()),
+           "left_out_pixels": int((judged & (w == 0)).sum()),
+           "relative_rmse_robust_weighted": relative_rmse(relit[usable], values[usable], w[usable])}
+    if bound.any():
+        out["clipped_pixels_below_bound"] = int(below.sum())
+        out["clipped_pixels_below_bound_down_weighted"] = int((below & (w < 1)).sum())
+    return out
+
+
+def robust_summary(options: SolveOptions, info: dict | None, saturated: np.ndarray) -> dict:
+    """solve_report.json's `robust`: what the robust pass did (`info`), with its line for the console."""
+    n_sat = int(np.sum(saturated))
+    if info is None:
+        why = "--exact (the reference route is plain least squares)" if options.exact else "--no-robust"
+        return {"applied": False, "note": f"not applied: {why}; clipped pixels left out", "clipped_pixels": n_sat}
+    mode = ("lower bounds" if options.bounds else "left out") if n_sat else "none in the photo"
+    rep = {"applied": True, **info, "clipped_pixels": n_sat, "clipped": mode,
+           "note": ("a pixel whose residual is beyond threshold_sigmas of its noise (sigma by predicted brightness, "
+                    "and the prediction's change within edge_pixels) is down-weighted, to 0 at twice that; at most "
+                    "2 % of the pixels; the light is solved again when the weights move at least "
+                    f"{100 * ROBUST_TRIGGER:g} % of the squared error (influence); a clipped channel is a lower "
+                    "bound: only a prediction below it is an error")}
+    solved = f"solved again {info['rounds']} time(s)" if info["rounds"] else "nothing to solve again"
+    rep["line"] = (f"robust fit: {info['down_weighted_pixels']} of {info['pixels']} pixels down-weighted "
+                   f"({info['left_out_pixels']} to zero), {solved}"
+                   + (f"; {n_sat} clipped pixels as lower bounds, {info.get('clipped_pixels_below_bound', 0)} of "
+                      f"them left below it ({info.get('clipped_pixels_below_bound_down_weighted', 0)} of those "
+                      "down-weighted: a clipped core the model cannot reach)" if n_sat and options.bounds else
+                      (f"; {n_sat} clipped pixels left out" if n_sat else "")))
+    return rep
+
+
+def clipped_channels(values: np.ndarray, saturated: np.ndarray) -> np.ndarray:
+    """(P, 3) the channels of saturated pixels that are at the format's maximum (1 after reading):
+    what a lower bound holds for. A saturated pixel's other channels are measurements."""
+    top = values >= CLIP_VALUE
+    clipped = np.asarray(saturated, bool)[:, None] & top
+    lost = np.asarray(saturated, bool) & ~clipped.any(axis=1)  # (not at 1: a pixel scaled after reading)
+    clipped[lost] = True
+    return clipped
+
+
 def plastic_starts(start: Material, given: set) -> list[Material]:
     """The plastic fits `auto` probes: the start's distribution if given, else GGX and Beckmann."""
     if "distribution" in given:
@@ -468,9 +563,12 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     t0 = time.monotonic()
     values, usable, held = prepare_photo(vis, photo, options, photo_path, held_out)
     saturated = ~usable
+    clipped = clipped_channels(values, saturated)
     if saturated.any():
-        progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels left out)")
-    systems = _Systems(vis, values, usable, held, options, progress, albedo)
+        what = ("fitted as lower bounds after the first solve" if options.bounds else "left out")
+        progress.note(f"{len(values)} used pixels ({int(saturated.sum())} saturated pixels {what})")
+    systems = _Systems(vis, values, usable, held, options, progress, albedo, clipped)
+    kd_reference = material.kd
     light_options = options.light
 
     def on_level(rec):
@@ -617,24 +715,105 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     material, sol, system = result.material, result.solution, result.context
     if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
         albedo.scales = part_scales.get(id(sol), albedo.scales)
-    if not options.exact and material.specular and sol is not refined.get("solution"):
-        # the rounds re-solved the refinement of an earlier material on a smaller system: refine once
-        # more under the chosen one, on the whole sample
-        progress.note(f"refining the light under {material_text(material)}")
-        system = systems.system(material)
-        sol = full_solve(material, system)
-        result.solution, result.context = sol, system
+
+    def refine_chosen(material, sol, system):
+        if not options.exact and material.specular and sol is not refined.get("solution"):
+            # the rounds re-solved the refinement of an earlier material on a smaller system: refine once
+            # more under the chosen one, on the whole sample
+            progress.note(f"refining the light under {material_text(material)}")
+            system = systems.system(material)
+            sol = full_solve(material, system)
+        return sol, system
+
+    sol, system = refine_chosen(material, sol, system)
+    result.solution, result.context = sol, system
     recast, changed = np.zeros(0, np.int64), None
-    if adaptive and backend is not None:
-        recast = bright_texels(sol.light, systems.vis.cube)
-        if len(recast):
-            keep = None if options.exact else system  # corrected in place (the exact route builds anew)
-            result.context = system = None  # (on the exact route the old G goes before the new one is built)
-            sol, system, changed = recast_bright(systems, backend, recast, material, light_options, progress,
-                                                 system=keep)
+
+    def cast_bright(sol, system, done):
+        """The recast of the light's bright directions not cast yet (`recast_bright`)."""
+        nonlocal changed
+        if not (adaptive and backend is not None):
+            return sol, system, done
+        texels = np.setdiff1d(bright_texels(sol.light, systems.vis.cube), done)
+        if not len(texels):
+            return sol, system, done
+        keep = None if options.exact else system  # corrected in place (the exact route builds anew)
+        result.context = system = None  # (on the exact route the old G goes before the new one is built)
+        sol, system, changed = recast_bright(systems, backend, texels, material, light_options, progress, system=keep)
+        return sol, system, np.union1d(done, texels)
+
+    def relit_view(sol):
+        return render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
+
+    sol, system, recast = cast_bright(sol, system, recast)
+    relit = relit_view(sol)
+    robust_info = None
+    if options.robust and not options.exact:
+        # the robust pass (`light.robust`): the pixels the model cannot explain down-weighted, clipped
+        # channels fitted as lower bounds; the light (and a fitted specular term) solved again under
+        # those weights, until they settle
+        from ..light import robust
+
+        bound = clipped.any(axis=1) & saturated if options.bounds else np.zeros(len(values), bool)
+        counted = usable | bound
+        edge_of = lambda rel: robust.edge_range(vis.samples.pixel, rel)  # noqa: E731
+        weights, targets = usable.astype(np.float64), values
+        for k in range(ROBUST_ROUNDS + 1):
+            # (a bound says how bright, not where: a clipped pixel's hinge is judged by the noise alone,
+            # so a clipped highlight the model cannot reach is an outlier, not a pull on the light)
+            edge = np.where(bound, 0.0, edge_of(relit))
+            noise = robust.noise_model(values[counted], clipped[counted], relit[counted], edge[counted])
+            w = np.where(counted, robust.weights(noise, values, clipped, relit, edge), 0.0)
+            # a clipped pixel the light already predicts at least as bright is not fitted (an active set:
+            # pinned to its prediction, it would hold the light to a value the photo does not know)
+            satisfied = bound & ~robust.below_bound(values, clipped, relit)
+            w[satisfied] = 0.0
+            t = robust.lower_bound_targets(values, clipped, relit)
+            e2 = robust.residual_rms(values, clipped, relit) ** 2
+            # how much of the fit's squared error the new weights and targets move (a clipped pixel's
+            # target moves with the prediction: that counts once it has its weight)
+            moved = (np.abs(w - weights) * e2).sum()
+            moved += (np.minimum(w, weights) * ((t - targets) ** 2).mean(axis=1))[bound].sum()
+            influence = float(moved / max((weights * e2).sum(), (w * e2).sum(), 1e-300))
+            robust_info = {"rounds": k, "influence": influence, "noise": noise.summary()}
+            if influence < ROBUST_TRIGGER or k == ROBUST_ROUNDS:
+                break
+            weights, targets = w, t
+            down = counted & ~satisfied & (w < 1)
+            progress.note(f"robust pass {k + 1}: {int(down.sum())} of {int(counted.sum())} pixels down-weighted "
+                          f"({int((down & (w == 0)).sum())} to zero)"
+                          + (f", {int((bound & ~satisfied).sum())} clipped pixels below their bound"
+                             if bound.any() else "")
+                          + f" ({100 * influence:.1f} % of the squared error moved): solving again")
+            systems.robust(w, t)
+            if k == 0 and material.specular and reflectance.fits:
+                again = rf.alternate(vis, t, material, solve_light, counted, held & ~bound, kd_reference, ROBUST_LM_ROUNDS,
+                                     progress=on_round, rows=lm_rows, albedo=current_albedo)
+                material = again.material
+                sol, system = refine_chosen(material, again.solution, again.context)
+                n0 = len(result.rounds)
+                result.rounds += [replace(r, index=n0 + r.index, kind="robust") for r in again.rounds]
+                result.chosen_round = n0 + again.chosen_round
+                result.material = material
+                result.decision += (f"; then refitted under the robust weights: {material_text(material)} "
+                                    f"({again.decision})")
+            elif material.specular:
+                system = systems.system(material)
+                sol = full_solve(material, system)
+            else:
+                sol, system = solve_light(material)
+            if albedo is not None:
+                albedo.scales = part_scales.get(id(sol), albedo.scales)
+            sol, system, recast = cast_bright(sol, system, recast)
+            relit = relit_view(sol)
+        robust_info.update(robust_counts(w, counted, bound, clipped, values, relit, usable))
+    result.solution, result.context = sol, system
     observability, unobservable = ls.observability(system)
-    relit = render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
     versus = versus_photo(relit, values, usable)
+    robust_report = robust_summary(options, robust_info, saturated)
+    if robust_info is not None:
+        versus["relative_rmse_robust_weighted"] = robust_report["relative_rmse_robust_weighted"]
+        progress.note(robust_report["line"])
     warnings = ls.diagnose(system, sol, vis.cube, versus["relative_rmse_vs_photo"])
     n_range = rf.SHININESS_RANGE
     if material.model == PLASTIC:
@@ -658,9 +837,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "basis": sol.basis,
         "route": "exact" if options.exact else "sampled",
         "material": material.to_json(), "scale_ambiguity": SCALE_NOTE,
-        "pixels": {"used": int(len(values)), "saturated_excluded": int(saturated.sum()),
-                   "fit": int((usable & ~held).sum()), "held_out": int((usable & held).sum())},
+        "pixels": pixel_counts(usable, held, options.bounds),
         "sample": systems.sample_info,
+        "robust": robust_report,
         "exact_directions": {"texels": recast.tolist(), **({"changed": changed} if changed else {}),
                              "note": "directions that carry much of the light, cast for every pixel"
                                      + ("; changed: the used pixels whose visibility toward them the cast corrected, "

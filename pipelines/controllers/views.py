@@ -174,12 +174,13 @@ def subset(vis, rows: np.ndarray):
 
 
 def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.ndarray, layout: Layout,
-                    holdout_info: dict) -> dict:
+                    holdout_info: dict, bounds: bool = False) -> dict:
     """Per view: pixels (used / fit / held out / saturated), the relit error of the final light over
     its used pixels, and the held-out error over its held-out pixels of the light the model choice
     kept (fitted without them: the chosen level before the final re-solve on every row)."""
     from ..metrics import versus_photo
     from ..model.render import render
+    from .solve import pixel_counts
 
     sol = result.solution
     levels = getattr(sol, "levels", None) or []
@@ -196,8 +197,7 @@ def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.nda
         sl = layout.rows(k)
         u, h = usable[sl], held[sl]
         v = versus_photo(result.relit[sl], values[sl], u)
-        rec = {"pixels": {"used": int(sl.stop - sl.start), "saturated_excluded": int((~u).sum()),
-                          "fit": int((u & ~h).sum()), "held_out": int((u & h).sum())},
+        rec = {"pixels": pixel_counts(u, h, bounds),
                "relit_rmse": v["relative_rmse_vs_photo"], "bias": v["bias_vs_photo"],
                "held_out_rmse": None}
         if held_relit is not None and (u & h).any():

@@ -120,3 +120,14 @@ def held_out_sample(pixels: np.ndarray, held_out: np.ndarray, max_rows: int = MA
     taken = idx[order[:max_rows]]
     return Sample(taken, np.full(len(taken), len(idx) / max_rows), len(idx), 0,
                   f"{max_rows} of {len(idx)} held-out pixels, spread over the image")
+
+
+def with_bounds(sample: Sample, bounds: np.ndarray) -> Sample:
+    """The sample with the clipped pixels `bounds` appended, each standing for itself (lower bounds
+    that the robust pass fits: `light.robust`). The heads of the sample are unchanged."""
+    bounds = np.asarray(bounds, np.int64)
+    if not len(bounds):
+        return sample
+    return Sample(np.concatenate([sample.rows, bounds]), np.concatenate([sample.weights, np.ones(len(bounds))]),
+                  sample.candidates + len(bounds), sample.boundary,
+                  f"{sample.reason}; and the {len(bounds)} clipped pixels (lower bounds), each standing for itself")

@@ -26,7 +26,7 @@ from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_co
                      scene_mesh, scene_views)
 from .visibility import visibility_stage
 
-VERSION = 12  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 13  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
@@ -36,7 +36,9 @@ VERSION = 12  # 4: the sampled route; reflectance rounds compare their own held-
 #   with the light), reflectance.json's `parts`; 10: auto gives a significant probe that its own held-out rows
 #   do not reward its own light before it stays Lambertian; 11: (a coarse light's bright directions cast
 #   before the solve, tried in 10, taken out again: it moved glossy fits to worse optima); 12: the exact recast
-#   corrects the system in place (the rows it changed; the same light), solve_report.json's exact_directions.changed
+#   corrects the system in place (the rows it changed; the same light), solve_report.json's exact_directions.changed;
+#   13: the robust pass (--robust: rows the model cannot explain down-weighted; --clipped bound: clipped pixels
+#   as lower bounds), solve_report.json's `robust`
 COMPARE_VERSION = 7  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve
 #   10, 11; 7: as solve 12
 
@@ -136,7 +138,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             if len(views) > 1:
                 resp = mv.responses(result.vis, layout)
                 by_view = mv.observability_by_view(resp, layout)
-                per_view = mv.per_view_errors(result, values, usable, held_rows, layout, holdout)
+                per_view = mv.per_view_errors(result, values, usable, held_rows, layout, holdout, opts.bounds)
             for k, (v, cam, (_, ph)) in enumerate(zip(views, cameras, photos)):
                 sl = layout.rows(k)
                 pix = layout.image_pixels(data.samples.pixel, k)
