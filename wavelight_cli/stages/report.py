@@ -195,6 +195,7 @@ def _result(doc: Doc, solve: dict, made: dict):
         ("brightest direction (the brightest region's energy centroid)",
          f"theta {bd.get('centroid', bd).get('theta_deg', float('nan')):.1f} deg, "
          f"phi {bd.get('centroid', bd).get('phi_deg', float('nan')):.1f} deg"),
+        ("robust fit", _robust_text(solve.get("robust", {}))),
         ("unobservable texels", f"{solve.get('observability', {}).get('unobservable')} of "
                                 f"{solve.get('observability', {}).get('texels')}"),
         ("time", f"normal equations {solve.get('normal_equations_seconds', 0):.1f} s, light "
@@ -202,6 +203,22 @@ def _result(doc: Doc, solve: dict, made: dict):
     if solve.get("warnings"):
         s.p("**What the photo cannot tell:**")
         s.items(list(solve["warnings"]))
+
+
+def _robust_text(rob: dict) -> str:
+    """solve_report.json's `robust` in a few words (a report of an older solve has none)."""
+    if not rob:
+        return "–"
+    if not rob.get("applied"):
+        return rob.get("note", "not applied")
+    text = (f"{rob.get('down_weighted_pixels')} of {rob.get('pixels')} pixels down-weighted "
+            f"({rob.get('left_out_pixels')} to zero), light solved again {rob.get('rounds')} time(s); "
+            f"relit error with the weights {_pct(rob.get('relative_rmse_robust_weighted'))}")
+    if rob.get("clipped_pixels"):
+        text += (f"; {rob['clipped_pixels']} clipped pixels {rob.get('clipped')}"
+                 + (f", {rob['clipped_pixels_below_bound']} left below their bound"
+                    if "clipped_pixels_below_bound" in rob else ""))
+    return text
 
 
 def _views(doc: Doc, solve: dict):
