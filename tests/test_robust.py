@@ -153,6 +153,16 @@ def _specks(scene, share=0.02, seed=3) -> int:
     return int((hit & used).sum())
 
 
+def _spoiled_mask(scene):
+    """Where the spoiled photo differs from the sample's own photo (the specks and glints)."""
+    from pipelines.io import images
+
+    from cli_helpers import SAMPLE
+
+    return np.any(images.read_image(scene / "image.exr").pixels != images.read_image(SAMPLE / "image.exr").pixels,
+                  axis=2)
+
+
 def test_a_clean_photo_is_solved_once_and_as_without_the_pass(solved, tmp_path):
     """On the clean sample photo no pixel moves 1 % of the squared error: no second solve, and the
     light is bit for bit that of --no-robust."""
@@ -165,6 +175,7 @@ def test_a_clean_photo_is_solved_once_and_as_without_the_pass(solved, tmp_path):
     plain = copy_scene(scene, tmp_path / "plain")
     ok(invoke(plain, "solve", "--resolution", RES, "--no-robust"))
     assert _report(plain)["robust"]["applied"] is False
+    assert (scene / "out" / "robust_weights.png").is_file() and not (plain / "out" / "robust_weights.png").exists()
     with h5py.File(scene / "out" / "coefficients.h5") as a, h5py.File(plain / "out" / "coefficients.h5") as b:
         np.testing.assert_array_equal(a["light"][()], b["light"][()])
 
@@ -184,6 +195,15 @@ def test_specks_and_glints_do_not_drag_the_light(solved, tmp_path):
     assert plain > 2.5 * clean, (plain, clean)  # (the test means something: the specks do drag the light)
     assert fixed < 0.5 * plain and fixed < 1.7 * clean, (fixed, plain, clean)
     assert 1 <= rep["rounds"] <= 3
+    # out/robust_weights.png shows where: the pixels it takes weight off are the spoiled ones
+    from pipelines.io import images
+    from pipelines.io.visibility_file import read_visibility
+
+    pix = read_visibility(vis_file(scene)).samples.pixel
+    lost = images.read_image(scene / "out" / "robust_weights.png").pixels.max(axis=2)[pix[:, 0], pix[:, 1]] > 0.5
+    spoiled_px = _spoiled_mask(scene)[pix[:, 0], pix[:, 1]]
+    assert (lost & spoiled_px).sum() >= 0.9 * lost.sum() and lost.sum() >= 0.5 * spoiled_px.sum(), (
+        int(lost.sum()), int((lost & spoiled_px).sum()), int(spoiled_px.sum()))
     assert 0.6 * spoiled <= rep["down_weighted_pixels"] <= robust.MAX_DOWN_SHARE * rep["pixels"] + 1, (
         rep["down_weighted_pixels"], spoiled)
 

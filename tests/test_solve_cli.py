@@ -17,7 +17,7 @@ import pytest
 from cli_helpers import (assert_one_error_line, RES, copy_scene, decision_line, invoke, manifest, ok, snapshot, VIS_STAGE, vis_file)
 
 SOLVE_OUTPUTS = ("light_latlong.exr", "light_cross.exr", "light_cross.png", "observability.png", "coefficients.h5",
-                 "relit.exr", "relit.png", "residual.png", "reflectance.json", "solve_report.json")
+                 "relit.exr", "relit.png", "residual.png", "robust_weights.png", "reflectance.json", "solve_report.json")
 COMPARE_OUTPUTS = ("compare.json", "compare.md", "compare.png", "compare_lights.png", "compare_lights.h5")
 COMPARE_BASES = ["wavelet", "quadtree", "discrete", "sh", "sh+", "points"]
 LUMA = np.array([0.2126, 0.7152, 0.0722])

@@ -209,6 +209,16 @@ def write_residual(path: Path, values: np.ndarray, reference: np.ndarray, pixels
                           "reference's 95th-percentile radiance", "linear radiance")
 
 
+def write_robust_weights(path: Path, weights: np.ndarray, pixels: np.ndarray, shape) -> Path:
+    """1 - the robust pass's weight of each used pixel as a heat map: black = full weight, white =
+    left out (solve_report.json's `robust`)."""
+    from pipelines.model.render import pixels_to_image
+
+    heat = pixels_to_image(1.0 - np.asarray(weights, np.float64), pixels, *shape)
+    return write_heat_png(path, heat, 1.0, "1 - the robust fit's weight: black = full weight, white = left out",
+                          "weight taken off")
+
+
 # -- renders of a view: EXR with alpha, PNG at the photo's exposure -------------------------------------------
 
 PHOTO_PERCENTILE = 99.5  # the photo's preview: this percentile of its positive radiance is white

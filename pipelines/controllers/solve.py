@@ -417,6 +417,7 @@ class SolveResult:
     warnings: list
     report: dict = field(default_factory=dict)
     albedo: object = None  # model.parts.PixelAlbedo with the fitted per-part scales (None: uniform)
+    robust_weights: np.ndarray | None = None  # (P,) the robust pass's weights under the final light (None: no pass)
 
 
 BRIGHT_REGION_DEG = 20.0  # the brightest region: texels this close to the brightest one, at least half as bright
@@ -747,7 +748,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     sol, system, recast = cast_bright(sol, system, recast)
     relit = relit_view(sol)
-    robust_info = None
+    robust_info = robust_weights = None
     if options.robust and not options.exact:
         # the robust pass (`light.robust`): the pixels the model cannot explain down-weighted, clipped
         # channels fitted as lower bounds; the light (and a fitted specular term) solved again under
@@ -807,6 +808,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             sol, system, recast = cast_bright(sol, system, recast)
             relit = relit_view(sol)
         robust_info.update(robust_counts(w, counted, bound, clipped, values, relit, usable))
+        robust_weights = np.where(satisfied, 1.0, w)  # (a satisfied bound is not a down-weighted pixel)
     result.solution, result.context = sol, system
     observability, unobservable = ls.observability(system)
     versus = versus_photo(relit, values, usable)
@@ -856,4 +858,4 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "seconds": time.monotonic() - t0,
     }
     return SolveResult(material, sol, result, system, systems.vis, relit, versus, observability, unobservable,
-                       warnings, report, albedo)
+                       warnings, report, albedo, robust_weights)

@@ -1,7 +1,7 @@
 """`wavelight solve` and `wavelight compare`: plan, run the controller, write, record.
 
 solve -> out/light_latlong.exr, light_cross.exr/png, observability.png, coefficients.h5,
-relit.exr/png, residual.png, reflectance.json, solve_report.json; compare -> out/compare.json,
+relit.exr/png, residual.png, robust_weights.png, reflectance.json, solve_report.json; compare -> out/compare.json,
 compare.md, compare.png, compare_lights.png, compare_lights.h5. The numerics and their policy are
 in `pipelines.controllers.solve` / `.compare`.
 """
@@ -21,7 +21,7 @@ from pipelines.errors import option_errors
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, write_json, write_light, write_residual,
-                       write_view)
+                       write_robust_weights, write_view)
 from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_backend,
                      scene_mesh, scene_views)
 from .visibility import visibility_stage
@@ -148,6 +148,11 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                                       exposure, cover=cover)
                 outputs.append(write_residual(vdir / "residual.png", result.relit[sl], ph.pixels[pix[:, 0], pix[:, 1]],
                                               pix, (cam.height, cam.width), ~ph.saturated[pix[:, 0], pix[:, 1]]))
+                if result.robust_weights is not None:
+                    outputs.append(write_robust_weights(vdir / "robust_weights.png", result.robust_weights[sl], pix,
+                                                        (cam.height, cam.width)))
+                else:  # (--no-robust, --exact: an earlier run's map would tell of weights this light never had)
+                    (vdir / "robust_weights.png").unlink(missing_ok=True)
                 if by_view is not None:
                     top = max(float(resp.sum(axis=0).max(initial=0.0)), 1e-300)
                     outputs.append(write_cross_heat_png(vdir / "observability_view.png", np.sqrt(resp[k] / top), cube,
@@ -171,7 +176,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             report = {"format": "wavelight-solve-report-1", "scene": str(scene.root), "photo": photo_path.name,
                       "basis": sol.basis,
                       "options": {**asdict(opts.light), "held_out": opts.held_out, "linear_input": opts.linear_input,
-                                  "exact": opts.exact, "resolution": vis_opts.resolution,
+                                  "exact": opts.exact, "robust": opts.robust, "clipped": opts.clipped,
+                                  "resolution": vis_opts.resolution,
                                   "hemisphere": vis_opts.hemisphere, "supersample": vis_opts.supersample,
                                   "visibility": data.method, "reflectance": asdict(refl),
                                   "views": [v.label for v in views]},
