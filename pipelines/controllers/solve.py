@@ -168,8 +168,8 @@ class _Systems:
         self.albedo = albedo  # model.parts.PixelAlbedo or None (uniform)
         self.options, self.progress = options, progress
         self.sample_info = None
-        # what the rows are fitted to: the photo, and a clipped channel's lower bound lifted to the
-        # prediction where that is brighter in a pixel with another channel below its bound (`robust`)
+        # what the rows are fitted to: the photo; after the robust pass (`robust`) a clipped channel's
+        # bound, or its prediction where that is brighter (a pixel with another channel below its bound)
         self.targets = values
         self.clipped = np.zeros(values.shape, bool) if clipped is None else np.asarray(clipped, bool)
         if options.exact:
@@ -180,10 +180,9 @@ class _Systems:
         change = sampling.visibility_change(pixels, np.asarray(vis.stored), vis.encoding)
         self.fit_sample = sampling.fit_sample(pixels, usable & ~held, change)
         self.held_sample = sampling.held_out_sample(pixels, usable & held)
-        # clipped pixels (lower bounds) follow the fit sample, every one standing for itself, at weight 0
-        # until the robust pass (`robust`) gives them theirs: the first solve is the one without them.
-        # Held-out ones too: a held-out error is a squared error, which a bound's target (the light's
-        # prediction where that is brighter) would bias towards the light it came from
+        # the clipped pixels (lower bounds) follow the fit sample, every one standing for itself, at weight
+        # 0 until the robust pass (`robust`) gives them theirs: the first solve is the one without them.
+        # The held-out ones too: a held-out error is a plain squared error, and a bound is not a value
         bounds = np.flatnonzero(self.clipped.any(axis=1) & ~usable) if options.bounds else np.zeros(0, np.int64)
         self.fit_sample = sampling.with_bounds(self.fit_sample, bounds)
         # the rows' weights: the sample's (the pixels each stands for) x the robust weight
@@ -252,6 +251,7 @@ class _Systems:
         self.targets = targets
         self.fit_w = self.fit_sample.weights * weights[self.fit_sample.rows]
         self.held_w = self.held_sample.weights * weights[self.held_sample.rows]
+
     def part_scales(self, light: np.ndarray, material: Material) -> np.ndarray:
         """The per-part albedo scales that fit the photo best under `light` (`parts.fit_scales`), over
         the rows the light is fitted to (the fit sample; on the exact route every fit pixel)."""
@@ -480,9 +480,8 @@ def pixel_counts(usable: np.ndarray, held: np.ndarray, bounds: bool) -> dict:
 
 def robust_counts(w, counted, bound, clipped, values, relit, usable) -> dict:
     """What the robust weights `w` (P,) of the final pass do over every used pixel."""
-    from ..metrics import relative_rmse
-
     from ..light.robust import below_bound
+    from ..metrics import relative_rmse
 
     below = bound & below_bound(values, clipped, relit)
     judged = counted & ~(bound & ~below)  # (a clipped pixel the light predicts at least as bright: satisfied)
@@ -757,12 +756,11 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
         bound = clipped.any(axis=1) & saturated if options.bounds else np.zeros(len(values), bool)
         counted = usable | bound
-        edge_of = lambda rel: robust.edge_range(vis.samples.pixel, rel)  # noqa: E731
         weights, targets = usable.astype(np.float64), values
         for k in range(ROBUST_ROUNDS + 1):
             # (a bound says how bright, not where: a clipped pixel's hinge is judged by the noise alone,
             # so a clipped highlight the model cannot reach is an outlier, not a pull on the light)
-            edge = np.where(bound, 0.0, edge_of(relit))
+            edge = np.where(bound, 0.0, robust.edge_range(vis.samples.pixel, relit))
             noise = robust.noise_model(values[counted], clipped[counted], relit[counted], edge[counted])
             w = np.where(counted, robust.weights(noise, values, clipped, relit, edge), 0.0)
             # a clipped pixel the light already predicts at least as bright is not fitted (an active set:
@@ -788,8 +786,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
             systems.robust(w, t)
             if k == 0 and material.specular and reflectance.fits:
-                again = rf.alternate(vis, t, material, solve_light, counted, held & ~bound, kd_reference, ROBUST_LM_ROUNDS,
-                                     progress=on_round, rows=lm_rows, albedo=current_albedo)
+                again = rf.alternate(vis, t, material, solve_light, counted, held & ~bound, kd_reference,
+                                     ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo)
                 material = again.material
                 sol, system = refine_chosen(material, again.solution, again.context)
                 n0 = len(result.rounds)
