@@ -87,6 +87,17 @@ def probe_errors(coefficients: Path, scene: Path) -> dict:
     return probe_errors_of(light, cube, cubemap.latlong_to_cube(env, fine), fine, view)
 
 
+def timed_solve(scene: Path, args: list[str]) -> tuple[float, dict]:
+    """`wavelight -q -s SCENE solve ARGS` in a subprocess: (wall seconds, its solve_report.json)."""
+    cmd = [str(Path(sys.executable).parent / "wavelight"), "-q", "-s", str(scene), "solve", *args]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    return seconds, json.loads((scene / "out" / "solve_report.json").read_text())
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("scene", type=Path)

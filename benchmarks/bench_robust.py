@@ -16,9 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_e2e import dominant_direction, probe_errors  # noqa: E402
+from bench_e2e import dominant_direction, probe_errors, timed_solve  # noqa: E402
 from pipelines.io import images  # noqa: E402
 
 
@@ -49,14 +47,7 @@ def run(source: Path, truth: Path, work: Path, tag: str, extra: list[str], resol
     dst = work / tag
     shutil.rmtree(dst, ignore_errors=True)
     shutil.copytree(source, dst, ignore=shutil.ignore_patterns(".wavelight", "out"))
-    exe = Path(sys.executable).parent / "wavelight"
-    cmd = [str(exe), "-q", "-s", str(dst), "solve", "-R", str(resolution), *extra]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    seconds = time.perf_counter() - t0
-    if proc.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    report = json.loads((dst / "out" / "solve_report.json").read_text())
+    seconds, report = timed_solve(dst, ["-R", str(resolution), *extra])
     sun = dominant_direction(truth)
     c = np.array(report["brightest_direction"]["centroid"]["direction"])
     rob = report.get("robust", {})

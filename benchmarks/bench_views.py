@@ -21,9 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -32,21 +30,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_e2e import dominant_direction, probe_errors  # noqa: E402
+from bench_e2e import dominant_direction, probe_errors, timed_solve  # noqa: E402
 
 
 def run(scene: Path, work: Path, tag: str, extra: list[str], resolution: int, reflectance: str) -> dict:
     dst = work / f"{scene.name}-{tag}"
     shutil.rmtree(dst, ignore_errors=True)
     shutil.copytree(scene, dst, ignore=shutil.ignore_patterns(".wavelight", "out"))
-    exe = Path(sys.executable).parent / "wavelight"
-    cmd = [str(exe), "-q", "-s", str(dst), "solve", "-R", str(resolution), "--reflectance", reflectance, *extra]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    seconds = time.perf_counter() - t0
-    if proc.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    report = json.loads((dst / "out" / "solve_report.json").read_text())
+    seconds, report = timed_solve(dst, ["-R", str(resolution), "--reflectance", reflectance, *extra])
     truth = dominant_direction(scene)
     c = np.array(report["brightest_direction"]["centroid"]["direction"])
     angle = None if truth is None else float(np.degrees(np.arccos(np.clip(c @ truth, -1, 1))))
