@@ -40,6 +40,7 @@ MAX_BRIGHT = 64
 ROBUST_ROUNDS = 3  # the robust pass: weights -> light (and reflectance) again, at most this many times
 ROBUST_TRIGGER = 0.01  # ... while the new weights and targets move at least this share of the squared error
 ROBUST_LM_ROUNDS = 2  # a fitted specular term is refitted under the robust weights in this many LM rounds
+ROBUST_ACCEPT = 0.02  # the robust solve is kept if its plain error over every usable pixel rises by at most this
 PART_ROUNDS = 12  # several parts / textures: light <-> per-part albedo scales, at most this many rounds
 PART_TOL = 1e-3  # ... until no part's scale changes by more than this (relative)
 SCALE_NOTE = ("light x albedo is only known as a product: with the default kd = 1 the light absorbs "
@@ -505,9 +506,14 @@ def robust_summary(options: SolveOptions, info: dict | None, saturated: np.ndarr
            "note": ("a pixel whose residual is beyond threshold_sigmas of its noise (sigma by predicted brightness, "
                     "and the prediction's change within edge_pixels) is down-weighted, to 0 at twice that; at most "
                     "2 % of the pixels; the light is solved again when the weights move at least "
-                    f"{100 * ROBUST_TRIGGER:g} % of the squared error (influence); a clipped channel is a lower "
-                    "bound: only a prediction below it is an error")}
+                    f"{100 * ROBUST_TRIGGER:g} % of the squared error (influence), and that solve is kept only if "
+                    f"its plain relit error is at most {100 * ROBUST_ACCEPT:g} % above the plain solve's (kept, "
+                    "plain_relit_rmse); a clipped channel is a lower bound: only a prediction below it is an error")}
     solved = f"solved again {info['rounds']} time(s)" if info["rounds"] else "nothing to solve again"
+    if info.get("kept") is False:
+        p = info["plain_relit_rmse"]
+        solved += (f", not kept (the plain relit error would rise {100 * p['before']:.2f} -> {100 * p['after']:.2f} %: "
+                   "the pixels it down-weighted carry the light)")
     rep["line"] = (f"robust fit: {info['down_weighted_pixels']} of {info['pixels']} pixels down-weighted "
                    f"({info['left_out_pixels']} to zero), {solved}"
                    + (f"; {n_sat} clipped pixels as lower bounds, {info.get('clipped_pixels_below_bound', 0)} of "
@@ -757,6 +763,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         bound = clipped.any(axis=1) & saturated if options.bounds else np.zeros(len(values), bool)
         counted = usable | bound
         weights, targets = usable.astype(np.float64), values
+        plain = (material, sol, relit, None if albedo is None else albedo.scales.copy(), result.material,
+                 list(result.rounds), result.chosen_round, result.decision)
         for k in range(ROBUST_ROUNDS + 1):
             # (a bound says how bright, not where: a clipped pixel's hinge is judged by the noise alone,
             # so a clipped highlight the model cannot reach is an outlier, not a pull on the light)
@@ -807,6 +815,29 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             relit = relit_view(sol)
         robust_info.update(robust_counts(w, counted, bound, clipped, values, relit, usable))
         robust_weights = np.where(satisfied, 1.0, w)  # (a satisfied bound is not a down-weighted pixel)
+        if robust_info["rounds"]:
+            # the check: down-weighting a few spoiled pixels hardly changes how well the light explains the
+            # whole photo; when the plain error over every usable pixel rises by more than ROBUST_ACCEPT,
+            # the pixels it took weight off were carrying the light (a texture or a highlight the model
+            # cannot follow, not specks): the plain solve is kept, and the report says so
+            before = versus_photo(plain[2], values, usable)["relative_rmse_vs_photo"]
+            after = versus_photo(relit, values, usable)["relative_rmse_vs_photo"]
+            robust_info["plain_relit_rmse"] = {"before": before, "after": after}
+            if after > (1.0 + ROBUST_ACCEPT) * before:
+                material, sol, relit, scales, result.material, result.rounds, result.chosen_round, result.decision = plain
+                if albedo is not None:
+                    albedo.scales = scales
+                systems.robust(usable.astype(np.float64), values)
+                system = systems.system(material)
+                robust_info["kept"] = False
+                robust_info.update(robust_counts(np.where(counted, 1.0, 0.0), counted, bound, clipped, values, relit,
+                                                 usable))
+                progress.note(f"robust pass not kept: the plain relit error would rise from {100 * before:.2f} % to "
+                              f"{100 * after:.2f} % (> {100 * ROBUST_ACCEPT:g} %): the pixels it down-weighted carry "
+                              "the light (a texture or highlight the model cannot follow), not spoil it")
+                robust_weights = None
+            else:
+                robust_info["kept"] = True
     result.solution, result.context = sol, system
     observability, unobservable = ls.observability(system)
     versus = versus_photo(relit, values, usable)
