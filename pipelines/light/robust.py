@@ -23,6 +23,10 @@ with what the model can be expected to miss there:
   again until the set settles. A bound says how bright, not where: its hinge is judged by the
   noise alone (no edge term), so a clipped highlight the model cannot reach is down-weighted like
   any pixel it cannot explain.
+
+The controller (`controllers/solve.py`) solves the light again under these weights while they move
+at least 1 % of the squared error, and keeps that solve only if its plain error over every usable
+pixel rises by at most 2 % (else the down-weighted pixels were carrying the light).
 """
 
 from __future__ import annotations
