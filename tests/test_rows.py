@@ -190,3 +190,33 @@ def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precisi
         np.testing.assert_allclose(moved.predict(np.ones((vis.cube.n_texels, 3))) if s is s2 else
                                    grouped.predict(np.ones((vis.cube.n_texels, 3))),
                                    plain.predict(np.ones((vis.cube.n_texels, 3))), rtol=1e-6)
+
+
+@pytest.mark.parametrize("material", [
+    Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"),
+    Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2),
+], ids=["blinn-phong", "plastic"])
+def test_a_rounds_system_builds_the_transport_of_its_head_rows_alone(mitsuba_scene, material):
+    """A specular round's smaller system (`n_rows`) builds its lobe's S, and a plastic's D seen through
+    the coating, for those rows only (memory and time per round): the same numbers as the head of
+    the whole rows' transport, and a later request for every row builds them all."""
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(5)
+    rows = rng.permutation(vis.n_pixels)[:600]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = np.ones(len(rows))
+    tr = TransportRows(vis, rows)
+    small = tr.part(material, photo, weights, len(rows), n_rows=200)
+    assert len(small.S.rows) == 200
+    plastic = material.model == "plastic"
+    if plastic:
+        assert len(tr._coated[1].rows) == 200  # the coated D of the head alone
+    assert len(tr.diffuse().rows) == 600  # the Lambertian D is kept for every row
+    whole = TransportRows(vis, rows).part(material, photo, weights, len(rows))
+    np.testing.assert_array_equal(small.S.rows, whole.S.rows[:200])
+    np.testing.assert_array_equal(small.D.rows, whole.D.rows[:200])
+    full = tr.part(material, photo, weights, len(rows))  # every row: built anew, no head served
+    assert len(full.S.rows) == 600 and len(full.D.rows) == 600
+    np.testing.assert_array_equal(full.D.rows, whole.D.rows)
+    if plastic:  # the coated D differs from the Lambertian one (the test sees the coated one)
+        assert not np.allclose(full.D.rows, tr.diffuse().rows)

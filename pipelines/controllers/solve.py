@@ -681,6 +681,15 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         ne = systems.system(m)
         return full_solve(m, ne), ne
 
+    def round_light(m: Material):
+        """`solve_light` for the reflectance fits: a specular round's light on the sampled route is a
+        re-solve on a smaller system, and `refine_chosen` builds the chosen material's system anew, so
+        the round's system is not returned (its transport rows held through the rounds: memory)."""
+        sol, ne = solve_light(m)
+        if not options.exact and m.specular and sol is not refined.get("solution"):
+            ne = None
+        return sol, ne
+
     def on_round(r):
         h = "" if r.held_out_rmse is None else f", held-out {100 * r.held_out_rmse:.3f} %"
         lm = "" if r.fit is None else f" (LM: {r.fit.evaluations} evaluations, {r.fit.seconds:.1f} s)"
@@ -698,22 +707,22 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             return systems.highlight_rows(light, material.kd, PROBE_ROWS, PROBE_ROWS // 2)
     try:
         if reflectance.mode == "given":
-            result = rf.fixed(material, solve_light, "given", "given by the user (--material/--model/--kd/--ks/"
+            result = rf.fixed(material, round_light, "given", "given by the user (--material/--model/--kd/--ks/"
                               "--shininess): not fitted", on_round)
         elif reflectance.mode == "lambert":
-            result = rf.fixed(Material(kd=material.kd), solve_light, "lambert", "lambert: chosen by --reflectance",
+            result = rf.fixed(Material(kd=material.kd), round_light, "lambert", "lambert: chosen by --reflectance",
                               on_round)
         else:
             start = reflectance.start(material, given)
             progress.note(f"reflectance {reflectance.mode}: start {material_text(start)}")
             if reflectance.mode == "auto":
-                result = rf.select(vis, values, start, solve_light, usable, held, material.kd,
+                result = rf.select(vis, values, start, round_light, usable, held, material.kd,
                                    reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
                                    rows=lm_rows, probe_rows=probe_rows,
                                    plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
                                    note=progress.note, albedo=current_albedo)
             else:
-                result = rf.alternate(vis, values, start, solve_light, usable, held, material.kd,
+                result = rf.alternate(vis, values, start, round_light, usable, held, material.kd,
                                       reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo)
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
@@ -794,7 +803,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
             systems.robust(w, t)
             if k == 0 and material.specular and reflectance.fits:
-                again = rf.alternate(vis, t, material, solve_light, counted, held & ~bound, kd_reference,
+                again = rf.alternate(vis, t, material, round_light, counted, held & ~bound, kd_reference,
                                      ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo)
                 material = again.material
                 sol, system = refine_chosen(material, again.solution, again.context)

@@ -578,30 +578,41 @@ class TransportRows:
                 new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material)
             pyramid.set_rows(index[sel], new)
 
-    def diffuse(self, material=None) -> Pyramid:
-        """D (kd = 1) under `material`: the Lambertian one (kept) for every model but `plastic`, whose
-        base is seen through its coating (the latest such D is kept as well)."""
+    def diffuse(self, material=None, n_rows: int | None = None) -> Pyramid:
+        """D (kd = 1) under `material`: the Lambertian one (kept, every row) for every model but
+        `plastic`, whose base is seen through its coating: that D is built for the first `n_rows` rows
+        (all by default: a specular round's smaller system needs its head alone) and the latest one is
+        kept, serving fewer rows of the same coating as its head."""
         from ..model.materials import PLASTIC
 
         plastic = material is not None and material.model == PLASTIC
-        key = (material.roughness, material.ior, material.distribution) if plastic else None
-        if key is None and self._diffuse is not None:
+        if not plastic:
+            if self._diffuse is None:
+                self._diffuse = self._diffuse_rows(None, self.vis.n_pixels)
             return self._diffuse
-        if key is not None and self._coated is not None and self._coated[0] == key:
-            return self._coated[1]
+        n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
+        key = (material.roughness, material.ior, material.distribution)
+        if self._coated is not None and self._coated[0] == key and len(self._coated[1].rows) >= n:
+            kept = self._coated[1]
+            return kept if len(kept.rows) == n else kept.head(n)
+        self._coated = None  # (the coating before: its memory goes before the new one is built)
+        pyramid = self._diffuse_rows(material, n)
+        self._coated = (key, pyramid, material)
+        return pyramid
+
+    def _diffuse_rows(self, material, n: int) -> Pyramid:
+        """D of the first n rows (`render.diffuse_transport`; material None: Lambertian)."""
         from ..model.render import diffuse_transport
 
         v = self.vis
-        D = np.empty((v.n_pixels, v.cube.n_texels), np.float32)
+        D = np.empty((n, v.cube.n_texels), np.float32)
         for sl, V in v.blocks(8192, raw=True):
-            diffuse_transport(V, v.samples.normal[sl], v.cube, material if plastic else None, v.samples.view[sl],
+            if sl.start >= n:
+                break
+            sl = slice(sl.start, min(sl.stop, n))
+            diffuse_transport(V[: sl.stop - sl.start], v.samples.normal[sl], v.cube, material, v.samples.view[sl],
                               out=D[sl])
-        pyramid = Pyramid(D, v.cube.tile_sizes)
-        if key is None:
-            self._diffuse = pyramid
-        else:
-            self._coated = (key, pyramid, material)
-        return pyramid
+        return Pyramid(D, v.cube.tile_sizes)
 
     def specular(self, material, n_rows: int | None = None) -> Pyramid:
         """S (ks = 1) of `material`'s lobe for the first `n_rows` rows (all by default); the latest one
@@ -618,13 +629,14 @@ class TransportRows:
         if key not in self._specular:
             from ..model.render import specular_transport
 
+            self._specular = {}  # (the lobe before: its memory goes before the new one is built)
             S = np.empty((n, self.vis.cube.n_texels), np.float32)
             for sl, V in self.vis.blocks(8192, raw=True):
                 if sl.start >= n:
                     break
                 sl = slice(sl.start, min(sl.stop, n))
-                S[sl] = specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl],
-                                           self.vis.samples.view[sl], self.vis.cube, unit)
+                specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl], self.vis.samples.view[sl],
+                                   self.vis.cube, unit, out=S[sl])
             self._specular = {key: (Pyramid(S, self.vis.cube.tile_sizes), unit)}
         return self._specular[key][0]
 
@@ -639,7 +651,8 @@ class TransportRows:
         rows render with albedo x scales[group] (`RowsPart.group`)."""
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         w = np.asarray(weights, np.float64)
-        D = self.diffuse(material) if n == self.vis.n_pixels else self.diffuse(material).head(n)
+        D = self.diffuse(material, n)
+        D = D if len(D.rows) == n else D.head(n)
         S = self.specular(material, n) if material.specular else None
         kd = np.asarray(material.kd, float)
         if albedo is not None:

@@ -145,11 +145,11 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, materia
 
 
 def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-                               material: Material) -> np.ndarray:
+                               material: Material, out: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the coating's lobe (ks = 1): V w_i F(v.h) D(h) G1(v) G1(d_i) / (4 N.v) at the texel
     centres, with the texel-widened roughness (`microfacet.lobe_factors`, `lobe_values`), views with
     N.v < GRAZING_NV capped at the coating's specular albedo (`microfacet.grazing_cap`); blocks of
-    rows on both cores."""
+    rows on both cores (in `out` when given: (P, N) float32)."""
     P, N = len(normals), cube.n_texels
     d = cube.directions.astype(np.float32)
     w = cube.solid_angles.astype(np.float32)[None, :]
@@ -159,7 +159,7 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
     alpha, dist, eta = float(material.roughness), material.distribution, float(material.ior)
     g1v_all = mf.smith_g1((1.0 - np.minimum(nv_all, 1.0) ** 2) / np.maximum(nv_all, 1e-6) ** 2, alpha,
                           dist).astype(np.float32)
-    out = np.empty((P, N), np.float32)
+    out = np.empty((P, N), np.float32) if out is None else out
     b = min(KERNEL_ROWS, max(P, 1))
 
     def run(blocks):
@@ -186,15 +186,15 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
 
 
 def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-                       material: Material) -> np.ndarray:
+                       material: Material, out: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the specular part of `transport` (ks = 1) for the material's model and n:
     V w_i max(0, N.d_i) norm(n) c_i^n with c the lobe cosine, 0 where c <= 0 (`specular_factors`).
 
     Computed in blocks of rows with reused scratch arrays and c^n = exp(n log c): the same numbers
     as `specular_factors` to float32 rounding, several times faster (no (P, N) temporaries; numpy's
-    float32 power is not vectorised, exp and log are)."""
+    float32 power is not vectorised, exp and log are). In `out` when given ((P, N) float32)."""
     if material.model == PLASTIC:
-        return plastic_specular_transport(V, normals, views, cube, material)
+        return plastic_specular_transport(V, normals, views, cube, material, out)
     P, N = len(normals), cube.n_texels
     model = material.model
     if model not in ("blinn-phong", "phong", "phong-classic"):
@@ -203,7 +203,7 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     n = np.float32(material.shininess)
     d = cube.directions.astype(np.float32)
     w = cube.solid_angles.astype(np.float32)[None, :] * np.float32(norm)
-    out = np.empty((P, N), np.float32)
+    out = np.empty((P, N), np.float32) if out is None else out
     nrm = np.asarray(normals, np.float32)
     vw = np.asarray(views, np.float32)
     b = min(KERNEL_ROWS, max(P, 1))
