@@ -74,6 +74,33 @@ def test_three_views_report_per_view(tmp_path):
     assert "## Views" in md and "| left (held out) | 44400 |" in md
 
 
+def test_relight_a_view_by_its_name(tmp_path):
+    """relight --view NAME renders one of the scene's photos from its own camera and pose and compares
+    it with that photo: the same error the solve reports for the view; a name the scene lacks, or a
+    --view-camera with a named view, is one error line."""
+    scene = copy_views_scene(tmp_path)
+    ok(solve_fast(scene))
+    report = json.loads((scene / "out" / "solve_report.json").read_text())
+    for name, out in (("left", "left"), ("main", "mainview")):
+        result = invoke(scene, "relight", "--view", name, "--name", out)
+        ok(result)
+        summary = json.loads((scene / "out" / f"{out}.json").read_text())
+        assert summary["pixels"] == report["views"][name]["pixels"]["used"]
+        assert summary["reference"].endswith("image.exr")
+        assert summary["relative_rmse_vs_photo"] == pytest.approx(report["views"][name]["relit_rmse"], rel=2e-3)
+        assert (scene / "out" / f"{out}_residual.png").is_file()
+        assert (f"view {name}," if name != "main" else "photo view,") in result.stdout + result.stderr
+    # the left view's visibility is the one the solve cached (not cast again)
+    assert f"visibility/views-left/R{RES}: skipped" in ok(invoke(scene, "relight", "--view", "left", "--name", "x"))
+    # under another light there is nothing to compare with, but the view's photo stays behind the render
+    ok(invoke(scene, "relight", "--view", "left", "--rotate", "90", "--name", "turned"))
+    assert "relative_rmse_vs_photo" not in json.loads((scene / "out" / "turned.json").read_text())
+    line = error_line(invoke(scene, "relight", "--view", "nope"))
+    assert "--view nope" in line and "main, left, right" in line
+    line = error_line(invoke(scene, "relight", "--view", "left", "--view-camera", str(scene / "camera.json")))
+    assert "--view-camera" in line
+
+
 def test_two_views_hold_out_pixels_and_cache_per_view(tmp_path):
     scene = copy_views_scene(tmp_path)
     ok(solve_fast(scene, "--single-view"))

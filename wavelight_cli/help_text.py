@@ -109,6 +109,9 @@ EXAMPLES: dict[str, list[tuple[str, str]]] = {
          "The light turned 120 degrees about +Z, one stop darker: out/evening.exr, evening.png."),
         (f"{S} relight --light spot/truth/env_latlong.exr --name truth",
          "Under another lat-long light (here the sample's true one): out/truth.exr, truth.png."),
+        (f"{S} relight --view left --name left",
+         ("A scene with several photos (views/left/ ...): the left photo's view, compared with that "
+          "photo: out/left.exr, left.png, left_residual.png, left.json.")),
     ],
     "insert": [
         (f"{S} insert --at 0.8 -0.6 0.25 --radius 0.25 --object-kd 0.9 0.3 0.2",

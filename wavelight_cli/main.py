@@ -607,11 +607,14 @@ def compare_cmd(obj, force, **kw):
               help="Scale the light by 2^STOPS (the PNG keeps the photo's exposure: -1 looks one stop "
                    "darker).")
 @click.option("--view", "view_pose", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Render from another view: its pose.json (visibility for it is computed once and cached).")
+              help="Render from another view: one of the scene's photos by its name (a folder under views/, or "
+                   "main), with its own camera, pose and photo, which the render is compared with; or any "
+                   "other view's pose.json (visibility for it is computed once and cached).")
 @click.option("--view-camera", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The other view's camera.json [default: the scene's].")
 @click.option("--reference", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="An image to compare with [default: the photo, when the view and the light are the photo's].")
+              help="An image to compare with [default: the view's photo, when the view is one of the scene's "
+                   "photos and the light is the recovered one].")
 @click.option("--reference-mask", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Where to compare (white = compare) [default: every rendered pixel].")
 @click.option("--name", default="relight", show_default=True,

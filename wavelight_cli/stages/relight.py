@@ -15,11 +15,11 @@ from pipelines.errors import InputError, OptionError
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
-from ..scene import (SceneFiles, load_photo, mesh_coverage, other_view, photo_view, require, scene_albedo,
-                     solved_light)
+from ..scene import (SceneFiles, View, load_view_photo, mesh_coverage, other_view, photo_view, require,
+                     scene_albedo, scene_views, solved_light)
 from .visibility import visibility_stage
 
-VERSION = 6  # 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
+VERSION = 7  # 7: --view NAME (a view of the scene's: its photo behind and compared); 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
 
 @dataclass(frozen=True)
@@ -27,7 +27,7 @@ class RelightOptions:
     light: Path | None = None  # a lat-long light; None = the light `solve` recovered
     rotate: float = 0.0  # degrees about +Z (phi -> phi + rotate)
     light_exposure: float = 0.0  # stops: the light is multiplied by 2**light_exposure
-    view_pose: Path | None = None  # another view: its pose.json
+    view_pose: Path | None = None  # another view: its pose.json, or a view of the scene's by name (views/NAME, main)
     view_camera: Path | None = None  # and its camera.json (default: the scene's)
     reference: Path | None = None  # an image to compare with (default: the photo, for its own view and light)
     reference_mask: Path | None = None  # where to compare (white = compare)
@@ -62,12 +62,34 @@ def _display_photos(scene: SceneFiles, opts: RelightOptions, camera, loaded=None
     exposure the PNG takes: the scene's, None without one). `loaded`: the photo when already read."""
     from pipelines.io import images
 
+    view = relight_view(scene, opts)
+    if view.image is not None:  # a photo of the scene's: behind the render
+        photo = loaded if loaded is not None else load_view_photo(view, camera)[1]
+        return photo.pixels, photo.pixels
     if scene.image is None:
         return None, None
-    if opts.view_pose is None:
-        photo = loaded if loaded is not None else load_photo(scene, camera)[1]
-        return photo.pixels, photo.pixels
     return None, images.read_image(scene.image).pixels
+
+
+def relight_view(scene: SceneFiles, opts: RelightOptions) -> View:
+    """The view `--view` names: none, the photo's; a view of the scene's by its name (a folder under
+    views/, or main): its camera, pose and photo; else another view's pose.json (no photo)."""
+    if opts.view_pose is None:
+        return photo_view(scene)
+    arg = str(opts.view_pose)
+    if not Path(arg).is_file() and "/" not in arg and not arg.endswith(".json"):
+        views = {v.label: v for v in scene_views(scene)}
+        if arg not in views:
+            raise OptionError(f"--view {arg}: no such file, and the scene has no view of that name (its views: "
+                              f"{', '.join(views)})", None, "pass a view's pose.json, or the name of a folder under "
+                              "views/ (main: the scene folder's own photo)")
+        if opts.view_camera is not None:
+            raise OptionError(f"--view-camera goes with a pose.json; the view {arg!r} has its own camera", None,
+                              "leave out --view-camera")
+        view = views[arg]
+        require(view.pose, "run wavelight register (it writes the view's pose.json from its correspondences.csv)")
+        return view
+    return other_view(scene, opts.view_pose, opts.view_camera)
 
 
 def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightOptions, material, material_path,
@@ -87,15 +109,16 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
     for path in (opts.reference, opts.reference_mask):
         if path is not None:
             require(path, "check the path")
-    view = photo_view(scene) if opts.view_pose is None else other_view(scene, opts.view_pose, opts.view_camera)
+    view = relight_view(scene, opts)
     camera = read_camera(require(view.camera, "write camera.json or run wavelight calibrate"))
     reference = opts.reference
     same_light = opts.light is None and opts.rotate % 360 == 0 and opts.light_exposure == 0
-    if reference is None and opts.view_pose is None and same_light:
-        reference = scene.image  # the photo's own view and light: how well the model explains the photo
+    own_photo = view.image is not None  # the view of one of the scene's photos
+    if reference is None and own_photo and same_light:
+        reference = view.image  # a photo's own view and light: how well the model explains that photo
     mask_path = opts.reference_mask
     if mask_path is not None and reference is None:
-        raise OptionError("--reference-mask needs a reference (the photo is one only for its own view and light)",
+        raise OptionError("--reference-mask needs a reference (a photo is one only for its own view and light)",
                          None, "add --reference IMAGE")
     cache = SceneCache(scene.root)
     name = "relight" if opts.name == "relight" else f"relight-{opts.name}"
@@ -107,7 +130,7 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             upstream["solve"] = cache.key_of("solve") or "none"
         inputs = {"light": opts.light if opts.light is not None else scene.out / "coefficients.h5",
                   "material": material_path, "reference": reference, "reference_mask": mask_path,
-                  "photo": scene.image,  # the PNG's backdrop and exposure
+                  "photo": scene.image, "view_photo": view.image,  # the PNG's backdrop and exposure
                   **parts_files(scene.mesh, scene.root)}  # the parts' materials and textures
         params = {"rotate": opts.rotate, "light_exposure": opts.light_exposure, "material": material.to_json(),
                   "view": view.name}
@@ -116,8 +139,8 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
         def work(d) -> Ran:
             ref_path = ref = mask = None  # read and checked before anything is written
             if reference is not None:
-                if opts.view_pose is None and reference == scene.image:
-                    ref_path, ref = load_photo(scene, camera)
+                if own_photo and Path(reference) == Path(view.image):
+                    ref_path, ref = load_view_photo(view, camera)
                 else:
                     ref_path, ref = Path(reference), images.read_image(reference)
                     if (ref.width, ref.height) != (camera.width, camera.height):
@@ -134,7 +157,7 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             backend = raycast.make_backend(mesh, vis_opts.backend)
             values, _ = render_view(data, light, material, backend,
                                     scene_albedo(scene, material_path, mesh, camera, read_pose(view.pose)))
-            backdrop, scale_ref = _display_photos(scene, opts, camera, ref if ref_path == scene.image else None)
+            backdrop, scale_ref = _display_photos(scene, opts, camera, ref if own_photo and ref_path == view.image else None)
             outputs = write_view(out, opts.name, values, data.samples.pixel, (camera.height, camera.width), backdrop,
                                  opts.exposure, scale_ref, mesh_coverage(view, camera, backend.mesh, backend))
             summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
@@ -161,7 +184,8 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
                 what += f" turned {opts.rotate:g} deg"
             if opts.light_exposure:
                 what += f" {opts.light_exposure:+g} stops"
-            line = f"relight: {what}, {'photo view' if view.name == 'photo' else view.name}, {len(values)} pixels"
+            seen = "photo view" if view.name == "photo" else f"view {view.label}" if own_photo else view.name
+            line = f"relight: {what}, {seen}, {len(values)} pixels"
             if ref is not None:
                 line += (f": relative RMSE vs {Path(summary['reference']).name} "
                          f"{100 * summary['relative_rmse_vs_photo']:.2f} % over {summary['compared_pixels']} pixels")
