@@ -101,6 +101,42 @@ def test_relight_a_view_by_its_name(tmp_path):
     assert "--view-camera" in line
 
 
+def test_insert_into_a_view_by_its_name(tmp_path):
+    """insert --view NAME composites the object into that photo, seen from its own camera and pose:
+    the object covers the pixel its centre projects to in that view (and not in the main photo's
+    place), and the view's cached visibility is reused."""
+    from pipelines.geometry.camera import project
+    from pipelines.io import images
+    from pipelines.io.scene_files import read_camera, read_pose
+
+    scene = copy_views_scene(tmp_path)
+    ok(solve_fast(scene))
+    at = (0.8, -0.6, 0.25)
+    args = ("insert", "--at", *map(str, at), "--radius", "0.25")
+    for view, name, folder in ((None, "main_ball", scene), ("left", "left_ball", scene / "views" / "left")):
+        result = invoke(scene, *args, "--name", name, *(() if view is None else ("--view", view)))
+        err = ok(result)
+        if view is not None:
+            assert f"visibility/views-left/R{RES}: skipped" in err
+        summary = json.loads((scene / "out" / f"{name}.json").read_text())
+        assert summary["view"] == (view or "main") and summary["object_pixels"] > 500
+        assert Path(summary["photo"]).parent == folder
+        cam = read_camera(folder / "camera.json" if (folder / "camera.json").is_file() else scene / "camera.json")
+        uv = project(cam, read_pose(folder / "pose.json"), np.array([at]))[0]
+        render = images.read_image(scene / "out" / f"{name}_render.exr").pixels
+        photo = images.read_image(Path(summary["photo"])).pixels
+        composite = images.read_image(scene / "out" / f"{name}.exr").pixels
+        c, r = int(round(uv[0])), int(round(uv[1]))
+        assert np.abs(composite[r, c] - photo[r, c]).max() > 1e-3  # the object is where its centre projects
+        assert render[r, c].max() > 0
+    # the two composites differ: each is its own photo's view
+    a = images.read_image(scene / "out" / "main_ball.exr").pixels
+    b = images.read_image(scene / "out" / "left_ball.exr").pixels
+    assert a.shape == b.shape and np.abs(a - b).mean() > 0.01
+    line = error_line(invoke(scene, *args, "--view", "nope"))
+    assert "--view nope" in line and "main, left, right" in line
+
+
 def test_two_views_hold_out_pixels_and_cache_per_view(tmp_path):
     scene = copy_views_scene(tmp_path)
     ok(solve_fast(scene, "--single-view"))

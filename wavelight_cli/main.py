@@ -670,6 +670,9 @@ def relight_cmd(ctx, light, rotate, light_exposure, view_pose, view_camera, refe
 @click.option("--visibility", "visibility_method", default="adaptive", show_default=True,
               type=click.Choice(["adaptive", "exact"]),
               help="The scene's cached visibility to reuse (the object's own shadow rays are always cast).")
+@click.option("--view", "view_name", default=None,
+              help="Insert into another of the scene's photos: its name (a folder under views/, or main) "
+                   "[default: the scene folder's photo].")
 @click.option("--name", default="insert", show_default=True, help="Output names: out/NAME.exr/png, NAME_render.exr, "
               "NAME_shadow.png, NAME.json.")
 @material_options("fitted")
@@ -685,7 +688,7 @@ def insert_cmd(obj, **kw):
     material, material_path = _material_or_fitted(kw, scene)
     opts = InsertOptions(kw.pop("object_arg"), kw.pop("at"), kw.pop("scale"), kw.pop("rotate_z"), kw.pop("radius"),
                          kw.pop("object_material"), kw.pop("object_kd"), kw.pop("light"), kw.pop("resolution"),
-                         kw.pop("supersample"), kw.pop("exposure"), kw.pop("name"))
+                         kw.pop("supersample"), kw.pop("exposure"), kw.pop("name"), kw.pop("view_name"))
     insert_stage(scene, opts, material, material_path, obj["console"], kw.pop("force"), obj["lock_wait"],
                  kw.pop("visibility_method"))
 

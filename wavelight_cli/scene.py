@@ -157,6 +157,18 @@ def scene_views(scene: SceneFiles, select: str | None = None, need_main: bool = 
     return [v for v in views if v.label in dict.fromkeys(names)]
 
 
+def view_named(scene: SceneFiles, name: str, option: str = "--view") -> View:
+    """One of the scene's photos by its name (a folder under views/, or main), registered: its pose.json
+    must exist. An unknown name is an OptionError naming `option`."""
+    views = {v.label: v for v in scene_views(scene)}
+    if name not in views:
+        raise OptionError(f"{option} {name}: the scene has no view of that name (its views: {', '.join(views)})",
+                          None, "name a folder under views/, or main (the scene folder's own photo)")
+    view = views[name]
+    require(view.pose, "run wavelight register (it writes the view's pose.json from its correspondences.csv)")
+    return view
+
+
 def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> View:
     """A view named by its files' contents (the same files are the same view)."""
     camera = require(camera or scene.camera, "pass --view-camera or write camera.json")

@@ -14,10 +14,11 @@ from pipelines.errors import InputError, OptionError
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import photo_exposure, write_heat_png, write_json
-from ..scene import SceneFiles, load_photo, material_from_options, require, scene_albedo, solved_light
+from ..scene import (SceneFiles, load_view_photo, material_from_options, photo_view, require, scene_albedo,
+                     solved_light, view_named)
 from .visibility import visibility_stage
 
-VERSION = 4  # 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
+VERSION = 5  # 5: --view NAME (one of the scene's photos); 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
 SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
 
 
@@ -35,6 +36,7 @@ class InsertOptions:
     supersample: int = 1
     exposure: float | None = None  # PNG exposure in stops (None: the photo's, `outputs.photo_exposure`)
     name: str = "insert"
+    view: str | None = None  # one of the scene's photos by name (views/NAME, main); None: the main photo
 
     def check(self) -> None:
         if not all(np.isfinite(self.at)):
@@ -60,9 +62,10 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     from pipelines.model.parts import parts_files
 
     opts.check()
-    camera = read_camera(require(scene.camera, "write camera.json or run wavelight calibrate"))
-    pose = read_pose(require(scene.pose, "write pose.json or run wavelight register"))
-    photo_path, photo = load_photo(scene, camera)
+    view = photo_view(scene) if opts.view is None else view_named(scene, opts.view)
+    camera = read_camera(require(view.camera, "write camera.json or run wavelight calibrate"))
+    pose = read_pose(require(view.pose, "write pose.json or run wavelight register"))
+    photo_path, photo = load_view_photo(view, camera)
     light_source = opts.light if opts.light is not None else scene.out / "coefficients.h5"
     require(light_source, "run wavelight solve first, or pass --light")
     obj_path = None if opts.object == "sphere" else require(Path(opts.object), "pass a mesh file (OBJ, PLY, GLB, STL) "
@@ -82,7 +85,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
     out = scene.out
     with cache.lock(lock_wait, console.say):
         vis_opts = VisibilityOptions(resolution=resolution, method=visibility)
-        vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait)
+        vis = visibility_stage(scene, vis_opts, console, lock_wait=lock_wait, view=view)
         upstream = {vis.stage: vis.key}
         if opts.light is None:
             upstream["solve"] = cache.key_of("solve") or "none"
@@ -91,7 +94,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
         params = {"object": "sphere" if obj_path is None else "file", "at": list(opts.at), "scale": opts.scale,
                   "rotate_z": opts.rotate_z, "radius": opts.radius, "object_kd": opts.object_kd,
                   "resolution": resolution, "supersample": opts.supersample, "material": material.to_json(),
-                  "object_material_json": obj_material.to_json()}
+                  "object_material_json": obj_material.to_json(), "view": view.name}
         stage = Stage(name, VERSION, params, {"photo": photo_path, **inputs}, upstream, {"exposure": opts.exposure})
 
         def work(d) -> Ran:
@@ -130,9 +133,11 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
             summary = {"object": opts.object, "at": list(opts.at), "object_pixels": int(r.object_mask.sum()),
                        "shadowed_pixels_5pct": int((r.shadow < -0.05).sum()), "darkest_shadow": float(r.shadow.min()),
                        "resolution": cube.resolution, "light": "recovered" if opts.light is None else str(opts.light),
-                       "object_material": obj_material.to_json(), "scene_material": material.to_json()}
+                       "object_material": obj_material.to_json(), "scene_material": material.to_json(),
+                       "view": view.label, "photo": str(photo_path)}
             outputs.append(write_json(out / f"{opts.name}.json", summary))
-            summary["line"] = (f"insert: {summary['object_pixels']} object pixels, shadow (> 5 % darker) on "
+            seen = "" if opts.view is None else f"view {view.label}: "
+            summary["line"] = (f"insert: {seen}{summary['object_pixels']} object pixels, shadow (> 5 % darker) on "
                                f"{summary['shadowed_pixels_5pct']} pixels -> {cache.relative(outputs[1])}")
             return Ran(outputs, summary)
 

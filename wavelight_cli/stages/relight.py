@@ -16,7 +16,7 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
 from ..scene import (SceneFiles, View, load_view_photo, mesh_coverage, other_view, photo_view, require,
-                     scene_albedo, scene_views, solved_light)
+                     scene_albedo, scene_views, solved_light, view_named)
 from .visibility import visibility_stage
 
 VERSION = 7  # 7: --view NAME (a view of the scene's: its photo behind and compared); 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
@@ -78,17 +78,15 @@ def relight_view(scene: SceneFiles, opts: RelightOptions) -> View:
         return photo_view(scene)
     arg = str(opts.view_pose)
     if not Path(arg).is_file() and "/" not in arg and not arg.endswith(".json"):
-        views = {v.label: v for v in scene_views(scene)}
-        if arg not in views:
+        names = [v.label for v in scene_views(scene)]
+        if arg not in names:
             raise OptionError(f"--view {arg}: no such file, and the scene has no view of that name (its views: "
-                              f"{', '.join(views)})", None, "pass a view's pose.json, or the name of a folder under "
+                              f"{', '.join(names)})", None, "pass a view's pose.json, or the name of a folder under "
                               "views/ (main: the scene folder's own photo)")
         if opts.view_camera is not None:
             raise OptionError(f"--view-camera goes with a pose.json; the view {arg!r} has its own camera", None,
                               "leave out --view-camera")
-        view = views[arg]
-        require(view.pose, "run wavelight register (it writes the view's pose.json from its correspondences.csv)")
-        return view
+        return view_named(scene, arg)
     return other_view(scene, opts.view_pose, opts.view_camera)
 
 
