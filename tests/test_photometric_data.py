@@ -240,8 +240,9 @@ def test_solve_finds_the_led_on_the_ball_photos(tmp_path, view, index):
     002 2.8 / 1.9 deg, plastic (relit 3.6 %); 044 1.7 / 2.0 deg, plastic (6.6 %); 086 1.3 / 0.6 deg,
     blinn-phong (16.6 %). 044 is the photo whose probe's held-out rows miss the highlight: before
     auto gave such a probe its own light, it stayed Lambertian 4.8 deg off. At the default R = 32,
-    on all 16 photos: median 1.5 deg, worst 4.8 deg, and 068 and 092 still Lambertian (4.1 and 4.8
-    deg); R = 32 is not much better than R = 16 here (benchmarks/diligent_ball.md)."""
+    on all 16 photos (2026-12-03): median 1.0 / 1.2 deg (latlong / texels), worst 4.3 / 4.8 deg (044,
+    Blinn-Phong), and 068 still Lambertian (4.0 / 4.1 deg); R = 32 is not much better than R = 16 here
+    (benchmarks/diligent_ball.md)."""
     from pipelines.io import light_file as lt
 
     scene, led, _ = ph.build_ball_scene(tmp_path / "scene", index, view=view)
