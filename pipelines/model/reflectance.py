@@ -526,7 +526,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     """Light under `start` (or `first`, its (solution, context) already solved) -> LM -> light -> ...
     until a round lowers the all-pixel RMSE by < tol.
 
-    The best round (lowest RMSE) is kept; at most `max_rounds` LM fits. `rows`: (pixel indices,
+    The round of the lowest held-out error is kept (`_judged`; the fit error when nothing is held
+    out); the rounds stop on the fit error; at most `max_rounds` LM fits. `rows`: (pixel indices,
     weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
     (default: an evenly spread subset of the used pixels, `specular_data`). `albedo`: None, or a
     callable giving the current (P, 3) per-pixel relative albedo (the light solve may refit it).
@@ -543,7 +544,7 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     kept = [(sol, ctx)]
     if progress:
         progress(rounds[0])
-    best = 0
+    best = lowest = 0  # the chosen round (lowest held-out error), the round of the lowest fit error
     material = start
     fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
     for k in range(1, max_rounds + 1):
@@ -561,10 +562,14 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
         kept.append((sol, ctx))
         if progress:
             progress(rounds[-1])
-        previous = rounds[best].fit_rmse
+        previous = rounds[lowest].fit_rmse
         if rounds[k].fit_rmse < previous:
+            lowest = k
+        if _judged(rounds[k]) < _judged(rounds[best]):
             best = k
-            kept[:k] = [None] * k  # only the best round's light is kept (memory)
+            kept[:k] = [None] * k  # only the chosen round's light is kept (memory)
+        else:
+            kept[k] = None
         if previous - rounds[k].fit_rmse < tol * previous and not (jumped and rounds[k].fit_rmse >= previous):
             break  # (a jump that overshot gets one more round: its LM corrects it)
         # (not before round 3: the first rounds' steps tell little of the later ones, which
@@ -578,8 +583,19 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
                                seconds=time.perf_counter() - t0)
     sol, ctx = kept[best]
     return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
-                       f"alternation stopped after {len(rounds) - 1} LM round(s); round {best} has the lowest error",
+                       f"alternation stopped after {len(rounds) - 1} LM round(s); round {best} has the lowest "
+                       f"{'held-out' if rounds[best].held_out_rmse is not None else 'fit'} error",
                        seconds=time.perf_counter() - t0)
+
+
+def _judged(r: Round) -> float:
+    """What a round is chosen by: its held-out error (its fit error when nothing is held out).
+
+    Not the fit error: an alternation can keep lowering it by a hair while the lobe collapses into
+    a needle and the light grows point sources under the highlight, which predicts pixels it was
+    not fitted to worse (DiLiGenT 068: Beckmann alpha 0.030 -> 0.005, fit 13.491 -> 13.466 %,
+    held-out 5.42 -> 6.15 %)."""
+    return r.held_out_rmse if r.held_out_rmse is not None else r.fit_rmse
 
 
 def _heads_for(rounds) -> float | None:
