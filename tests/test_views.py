@@ -137,6 +137,54 @@ def test_insert_into_a_view_by_its_name(tmp_path):
     assert "--view nope" in line and "main, left, right" in line
 
 
+def test_photos_of_different_exposure(tmp_path):
+    """A photo taken at another exposure (auto exposure: views/left 1.6x brighter): `solve` fits each
+    photo's gain relative to the main one (--view-exposure fit, the default) and finds the same light
+    as with equal exposures; relight --view and insert --view render that photo at its own exposure.
+    With --view-exposure same the light fits none of the photos and the solve says so."""
+    from pipelines.io import images
+
+    same = copy_views_scene(tmp_path / "a")
+    brighter = copy_views_scene(tmp_path / "b")
+    photo = brighter / "views" / "left" / "image.exr"
+    images.write_exr(photo, images.read_image(photo).pixels * np.float32(1.6))
+    ok(solve_fast(same))
+    ok(solve_fast(brighter))
+    ra = json.loads((same / "out" / "solve_report.json").read_text())
+    rb = json.loads((brighter / "out" / "solve_report.json").read_text())
+    assert rb["options"]["view_exposure"] == "fit" and rb["view_exposure"]["mode"] == "fit"
+    truth = {"main": 1.0, "left": 1.6, "right": 1.0}
+    for name, v in rb["views"].items():
+        print(name, "fitted exposure", v["exposure"], "(equal photos:", ra["views"][name]["exposure"], ")",
+              "gain left", v["gain_left"], "relit", v["relit_rmse"], ra["views"][name]["relit_rmse"])
+        assert v["exposure"] == pytest.approx(truth[name], rel=0.01)  # measured: 1.602, 0.9996
+        assert ra["views"][name]["exposure"] == pytest.approx(1.0, rel=0.01)  # measured: 1.002, 0.9994
+        assert v["gain_left"] == pytest.approx(1.0, abs=0.01)
+        assert v["relit_rmse"] == pytest.approx(ra["views"][name]["relit_rmse"], rel=0.03)
+    assert rb["relit"]["relative_rmse_vs_photo"] == pytest.approx(ra["relit"]["relative_rmse_vs_photo"], rel=0.03)
+    # relight --view left compares with the brighter photo at that photo's exposure: the solve's error
+    ok(invoke(brighter, "relight", "--view", "left", "--name", "left"))
+    summary = json.loads((brighter / "out" / "left.json").read_text())
+    assert summary["view_exposure"] == pytest.approx(rb["views"]["left"]["exposure"])
+    assert summary["relative_rmse_vs_photo"] == pytest.approx(rb["views"]["left"]["relit_rmse"], rel=2e-3)
+    # insert --view left: the object is rendered 1.6x brighter there, as its photo is
+    renders = []
+    for scene in (same, brighter):
+        ok(invoke(scene, "insert", "--at", "0.8", "-0.6", "0.25", "--radius", "0.25", "--view", "left", "--name", "ball"))
+        renders.append(images.read_image(scene / "out" / "ball_render.exr").pixels)
+    obj = renders[0].max(axis=2) > 1e-3
+    ratio = np.median(renders[1][obj] / np.maximum(renders[0][obj], 1e-6))
+    print("insert: object brighter by", ratio)
+    assert ratio == pytest.approx(1.6, rel=0.02)
+    # the photos taken to be of one exposure: the light fits the brighter photo and the others badly
+    err = ok(solve_fast(brighter, "--view-exposure", "same"))
+    assert "--view-exposure fit" in err
+    rs = json.loads((brighter / "out" / "solve_report.json").read_text())
+    assert rs["view_exposure"]["mode"] == "same" and rs["views"]["left"]["exposure"] == 1.0
+    assert rs["views"]["left"]["gain_left"] > 1.1  # measured 1.415
+    assert rs["relit"]["relative_rmse_vs_photo"] > 3 * rb["relit"]["relative_rmse_vs_photo"]  # measured 19.7 % against 3.9 %
+
+
 def test_two_views_hold_out_pixels_and_cache_per_view(tmp_path):
     scene = copy_views_scene(tmp_path)
     ok(solve_fast(scene, "--single-view"))

@@ -546,6 +546,9 @@ def reflectance_options(f):
 @click.option("--clipped", type=click.Choice(["bound", "drop"]), default="bound", show_default=True,
               help="Clipped (saturated) pixels of 8/16-bit photos: lower bounds of the light's prediction "
                    "(fitted in the robust pass), or left out.")
+@click.option("--view-exposure", type=click.Choice(["fit", "same"]), default="fit", show_default=True,
+              help="Several photos (views/): fit one gain per photo relative to the main one (auto exposure, "
+                   "solve_report.json's views give each), or take them to be of one exposure (fixed settings).")
 @solve_options
 @reflectance_options
 @material_options("solve")
@@ -554,8 +557,8 @@ def reflectance_options(f):
 @force_option
 @views_options
 @click.pass_obj
-def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, robust, clipped, reflectance,
-              max_rounds, min_specular_gain, exposure, force, **kw):
+def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, robust, clipped, view_exposure,
+              reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
     reflectance.json, solve_report.json, ..."""
     from pipelines.controllers.solve import ReflectanceOptions
@@ -570,7 +573,7 @@ def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_c
     if reflectance is None:
         reflectance = "given" if given & {"file", "model"} else "auto"
     refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
-    opts = replace(_solve_opts(kw, basis, sh_nonnegative), robust=robust, clipped=clipped)
+    opts = replace(_solve_opts(kw, basis, sh_nonnegative), robust=robust, clipped=clipped, view_exposure=view_exposure)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
                       refl, given, select, PartsOptions(not single_material, not no_texture, texture_colour))
 

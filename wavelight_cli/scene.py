@@ -169,6 +169,22 @@ def view_named(scene: SceneFiles, name: str, option: str = "--view") -> View:
     return view
 
 
+def view_gain(scene: SceneFiles, view: View) -> float:
+    """The exposure of one of the scene's photos relative to the main one, as the last solve fitted it
+    (solve_report.json's views.NAME.exposure; `solve --view-exposure`): the recovered light renders
+    that photo at its own exposure times this. 1 for the main photo, a view the solve did not use,
+    or no solve report."""
+    import json
+
+    if view.image is None or view.label == MAIN_VIEW:
+        return 1.0
+    try:
+        report = json.loads((scene.out / "solve_report.json").read_text())
+        return float(report["views"][view.label]["exposure"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 1.0
+
+
 def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> View:
     """A view named by its files' contents (the same files are the same view)."""
     camera = require(camera or scene.camera, "pass --view-camera or write camera.json")

@@ -55,6 +55,7 @@ class SolveOptions:
     exact: bool = False  # dense normal equations over every used pixel (the reference route)
     robust: bool = True  # down-weight the few pixels the model cannot explain, clipped pixels as lower bounds
     clipped: str = "bound"  # clipped (saturated) channels: lower bounds ("bound"), or left out ("drop")
+    view_exposure: str = "fit"  # several photos: one gain per photo fitted relative to the main one ("fit"), or one exposure ("same")
 
     def check(self, resolution: int, hemisphere: bool = True) -> None:
         self.light.check(resolution, hemisphere)
@@ -63,13 +64,15 @@ class SolveOptions:
                              "use e.g. --held-out 0.1")
         if self.clipped not in CLIPPED_MODES:
             raise InputError(f"unknown --clipped {self.clipped!r}", None, f"use one of {', '.join(CLIPPED_MODES)}")
+        if self.view_exposure not in ("same", "fit"):
+            raise InputError(f"unknown --view-exposure {self.view_exposure!r}", None, "use same or fit")
         if self.light.levels == "auto" and self.held_out == 0 and self.light.basis in REFINED:
             raise InputError("--levels auto needs held-out pixels, but --held-out is 0", None,
                              "use --held-out 0.1, or give a fixed --levels N")
 
     def cache_params(self) -> dict:
         return {**self.light.cache_params(), "held_out": self.held_out, "linear_input": self.linear_input,
-                "exact": self.exact, "robust": self.robust, "clipped": self.clipped}
+                "exact": self.exact, "robust": self.robust, "clipped": self.clipped, "view_exposure": self.view_exposure}
 
     @property
     def bounds(self) -> bool:

@@ -206,3 +206,147 @@ def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.nda
             rec["held_out_whole"] = name == holdout_info["view"]
         out[name] = rec
     return out
+
+
+# -- photos of different exposure: one gain per view ------------------------------------------------
+EXPOSURE_MODES = ("same", "fit")
+EXPOSURE_ROWS = 4096  # the exposure fit uses at most this many used pixels of each view (spread over it)
+EXPOSURE_FACE = 4  # ... under a Lambertian light of this cube-map face resolution (a hemisphere: 48 leaves)
+EXPOSURE_CYCLES = 4  # ... searching each unknown in turn, this many times at most
+EXPOSURE_SPAN = 3.0  # ... each within a factor e^3 (20) of where it stands
+EXPOSURE_EVALUATIONS = 20
+EXPOSURE_TRIM = 3.5  # rows whose residual exceeds this many robust sigmas (highlights) are left out of a refit
+EXPOSURE_WARN = 0.02  # the final light's per-view gain differs from 1 by more than this: said in the report
+
+
+def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, albedo=None,
+                  main: int = 0) -> tuple[np.ndarray, dict]:
+    """Each view's exposure relative to the main view's, from the photos alone: (V,) gains e_v with
+    photo_v ~ e_v x the radiance the main view's photo is in, and what was done.
+
+    A Lambertian light of EXPOSURE_FACE x EXPOSURE_FACE texels a face (>= 0) and the gains (and,
+    with several parts, the parts' albedo factors: a row of part p in view v is predicted
+    s_p e_v kd_p D L) are fitted together by variable projection: the light is re-solved for every
+    trial value in a golden-section search over each unknown in turn (as `parts.varpro_scales`),
+    on up to EXPOSURE_ROWS used pixels of each view; the rows the fit explains worst (a highlight:
+    beyond EXPOSURE_TRIM robust sigmas) are then left out and the fit repeated.
+    """
+    import time
+
+    from ..geometry.visibility import decode
+    from ..light.haar import uniform_tree
+    from ..light.nnls import nnls_gram
+    from ..light.rows import Pyramid, _gram
+    from ..model.parts import golden_search
+    from ..model.render import diffuse_transport
+
+    t0 = time.perf_counter()
+    V = len(layout.names)
+    picked = []
+    for k in range(V):
+        r = np.flatnonzero(usable[layout.rows(k)]) + int(layout.starts[k])
+        picked.append(r[:: max(1, len(r) // EXPOSURE_ROWS)][:EXPOSURE_ROWS])
+    rows = np.concatenate(picked)
+    cube = vis.cube
+    tree = uniform_tree(cube, min(EXPOSURE_FACE, cube.resolution))
+    D = diffuse_transport(decode(np.asarray(vis.stored)[rows], cube.n_texels, vis.encoding, raw=True),
+                          vis.samples.normal[rows], cube, None, vis.samples.view[rows])
+    A = Pyramid(D, cube.tile_sizes).leaf_sums(tree).astype(np.float64)
+    del D
+    base = np.ones((len(rows), 3)) if albedo is None else albedo.base[rows]
+    y = np.asarray(values, np.float64)[rows]
+    view = layout.view_of_row[rows]
+    part = np.zeros(len(rows), np.int64) if albedo is None else albedo.part[rows]
+    n_parts = 1 if albedo is None else len(albedo.parts.parts)
+    ref = 0 if albedo is None else albedo.parts.reference
+    colour = [albedo is not None and p != ref and albedo.parts.parts[p].fit == "colour" for p in range(n_parts)]
+    group = part * V + view  # (part, view) pairs: a row's factor is s[part] x e[view]
+    e = np.ones(V)
+    s = np.ones((n_parts, 3)) if albedo is None else albedo.scales.copy()
+    keep = np.ones(len(rows), bool)
+    free = [None] * 3
+
+    def light_of(systems, c, f):
+        G = sum(f[g, c] ** 2 * systems[g][0][c] for g in systems)
+        h = sum(f[g, c] * systems[g][1][:, c] for g in systems)
+        r = nnls_gram(G, h, initial_free=free[c])
+        free[c] = r.x > 0
+        return r
+
+    def objective(systems, e_, s_, channels=range(3)):
+        f = (s_[:, None, :] * e_[None, :, None]).reshape(-1, 3)
+        return sum(float(sum(systems[g][2][c] for g in systems) + 2.0 * light_of(systems, c, f).objective)
+                   for c in channels)
+
+    for attempt in range(2):
+        systems = {}
+        for g in np.unique(group[keep]):
+            sel = np.flatnonzero((group == g) & keep)
+            M = [A[sel] * base[sel, c][:, None] for c in range(3)]
+            systems[int(g)] = (np.stack([_gram(m) for m in M]), np.column_stack([m.T @ y[sel, c] for c, m in enumerate(M)]),
+                               (y[sel] ** 2).sum(axis=0))
+        seen = {(g // V, g % V) for g in systems}
+        for _ in range(EXPOSURE_CYCLES):
+            before = np.concatenate([e, s.ravel()])
+            for k in range(V):
+                if k != main and any(v == k for _, v in seen):
+                    def fe(x, k=k):
+                        e2 = e.copy()
+                        e2[k] = np.exp(x)
+                        return objective(systems, e2, s)
+                    e[k] = np.exp(golden_search(fe, float(np.log(e[k])), EXPOSURE_SPAN, EXPOSURE_EVALUATIONS))
+            for p in range(n_parts):
+                if p == ref or not any(q == p for q, _ in seen):
+                    continue
+                for c in (range(3) if colour[p] else [None]):
+                    def fs(x, p=p, c=c):
+                        s2 = s.copy()
+                        s2[p] = np.exp(x) if c is None else s2[p]
+                        if c is not None:
+                            s2[p, c] = np.exp(x)
+                        return objective(systems, e, s2, range(3) if c is None else [c])
+                    x0 = float(np.log(s[p]).mean() if c is None else np.log(s[p, c]))
+                    x = golden_search(fs, x0, EXPOSURE_SPAN, EXPOSURE_EVALUATIONS)
+                    if c is None:
+                        s[p] = np.exp(x)
+                    else:
+                        s[p, c] = np.exp(x)
+            if np.max(np.abs(np.concatenate([e, s.ravel()]) / before - 1)) < 1e-4:
+                break
+        if attempt:
+            break
+        f = (s[:, None, :] * e[None, :, None]).reshape(-1, 3)
+        light = np.column_stack([light_of(systems, c, f).x for c in range(3)])
+        pred = f[group] * base * (A @ light)
+        res = np.abs(y - pred).sum(axis=1)
+        sigma = 1.4826 * np.median(np.abs(res - np.median(res)))
+        keep = res <= np.median(res) + EXPOSURE_TRIM * max(sigma, 1e-12)
+    unseen = [layout.names[k] for k in range(V) if not np.any(keep & (view == k))]
+    info = {"mode": "fit", "rows_per_view": {n: int(len(p)) for n, p in zip(layout.names, picked)},
+            "rows_left_out": int((~keep).sum()), "light": f"Lambertian, {tree.n_leaves} leaves (>= 0)",
+            "seconds": time.perf_counter() - t0}
+    if unseen:
+        info["note"] = f"view(s) {', '.join(unseen)} have no usable pixel: their gain is kept at 1"
+    return e, info
+
+
+def apply_exposures(photo, layout: Layout, gains: np.ndarray):
+    """The stacked photo with each view's band divided by its gain (saturation flags kept)."""
+    if np.allclose(gains, 1.0):
+        return photo
+    pixels = np.array(photo.pixels, np.float32, copy=True)
+    for k, g in enumerate(gains):
+        pixels[k * layout.stride:(k + 1) * layout.stride] /= np.float32(g)
+    return replace(photo, pixels=pixels)
+
+
+def final_gains(relit: np.ndarray, values: np.ndarray, usable: np.ndarray, layout: Layout) -> np.ndarray:
+    """(V,) each view's least-squares gain of the final relit view against its (exposure-corrected)
+    photo, relative to the main view's: what is left of an exposure difference (1 when none is)."""
+    g = np.ones(len(layout.names))
+    for k in range(len(layout.names)):
+        sl = layout.rows(k)
+        u = usable[sl]
+        f, y = relit[sl][u], values[sl][u]
+        g[k] = float((f * y).sum() / max((f * f).sum(), 1e-300))
+    return g / g[0]

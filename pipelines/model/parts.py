@@ -534,6 +534,25 @@ def view_albedo(reflectance: dict | None, mesh, mesh_path: Path, scene_dir: Path
 
 
 # -- the per-part factors with the light re-solved: variable projection on a fixed tree -------------
+def golden_search(f, x0: float, span: float, evaluations: int) -> float:
+    """The minimum of f over [x0 - span, x0 + span] by golden-section search (x0 if f is no lower there)."""
+    lo, hi = x0 - span, x0 + span
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    fa, fb = f(a), f(b)
+    for _ in range(evaluations):
+        if fa < fb:
+            hi, b, fb = b, a, fa
+            a = hi - g * (hi - lo)
+            fa = f(a)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + g * (hi - lo)
+            fb = f(b)
+    x = 0.5 * (lo + hi)
+    return x if f(x) <= f(x0) else x0
+
+
 def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span: float = 2.0,
                   evaluations: int = 24) -> np.ndarray:
     """Per-part factors that minimise the photo's residual with the light re-solved for each (a
@@ -547,9 +566,18 @@ def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span:
         found by golden-section search in log s (per channel for fit "colour", one shared factor
         for "scale"), part after part, for up to `max_cycles` cycles.
     """
+    return varpro_factors(systems, albedo.scales, [p.fit for p in albedo.parts.parts], max_cycles, span, evaluations)
+
+
+def varpro_factors(systems: list, factors: np.ndarray, modes: list, max_cycles: int = 3, span: float = 2.0,
+                   evaluations: int = 24) -> np.ndarray:
+    """`varpro_scales` for any groups of rows: per group q its system (or None) and a factor
+    (factors (groups, C)) multiplying its rows' prediction, held ("reference"), one grey factor
+    ("scale") or one per channel ("colour") by `modes[q]`. Also what fits several photos'
+    exposures (`controllers.views.fit_exposures`: a view's rows are its group)."""
     from ..light.nnls import nnls_gram
 
-    scales = albedo.scales.copy()
+    scales = np.array(factors, np.float64)
     present = [q for q, s in enumerate(systems) if s is not None]
     C = scales.shape[1]
     free = [None] * C
@@ -563,27 +591,13 @@ def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span:
         return float(bb + 2.0 * r.objective)
 
     def golden(f, x0: float) -> float:
-        lo, hi = x0 - span, x0 + span
-        g = (np.sqrt(5.0) - 1.0) / 2.0
-        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-        fa, fb = f(a), f(b)
-        for _ in range(evaluations):
-            if fa < fb:
-                hi, b, fb = b, a, fa
-                a = hi - g * (hi - lo)
-                fa = f(a)
-            else:
-                lo, a, fa = a, b, fb
-                b = lo + g * (hi - lo)
-                fb = f(b)
-        x = 0.5 * (lo + hi)
-        return x if f(x) <= f(x0) else x0
+        return golden_search(f, x0, span, evaluations)
 
-    movable = [q for q in present if albedo.parts.parts[q].fit != "reference"]
+    movable = [q for q in present if modes[q] != "reference"]
     for _ in range(max_cycles if len(movable) > 1 else 1):
         before = scales.copy()
         for q in movable:
-            if albedo.parts.parts[q].fit == "scale":
+            if modes[q] == "scale":
                 def f(x, q=q):
                     s = scales.copy()
                     s[q] = np.exp(x)

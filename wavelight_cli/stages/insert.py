@@ -15,10 +15,10 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import photo_exposure, write_heat_png, write_json
 from ..scene import (SceneFiles, load_view_photo, material_from_options, photo_view, require, scene_albedo,
-                     solved_light, view_named)
+                     solved_light, view_gain, view_named)
 from .visibility import visibility_stage
 
-VERSION = 5  # 5: --view NAME (one of the scene's photos); 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
+VERSION = 6  # 6: a named view at its own exposure (solve --view-exposure); 5: --view NAME (one of the scene's photos); 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
 SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
 
 
@@ -107,6 +107,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
             else:
                 texels, solved_cube, _ = solved_light(scene)
                 light = texels if solved_cube == cube else cubemap.resample_cube(texels, solved_cube, cube)
+                light = light * view_gain(scene, view)  # (another photo: at its own exposure, as solve fitted it)
             if (obj.vertices @ pose.R[2] + pose.t[2]).max() <= 0:
                 raise InputError("the object is behind the camera", None, "place it in front of the camera with --at")
             console.say(f"insert: {len(obj.faces)} object faces at {tuple(opts.at)}, R = {cube.resolution}")

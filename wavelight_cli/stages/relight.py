@@ -16,10 +16,10 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
 from ..scene import (SceneFiles, View, load_view_photo, mesh_coverage, other_view, photo_view, require,
-                     scene_albedo, scene_views, solved_light, view_named)
+                     scene_albedo, scene_views, solved_light, view_gain, view_named)
 from .visibility import visibility_stage
 
-VERSION = 7  # 7: --view NAME (a view of the scene's: its photo behind and compared); 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
+VERSION = 8  # 8: a named view at its own exposure (solve --view-exposure); 7: --view NAME (a view of the scene's: its photo behind and compared); 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
 
 @dataclass(frozen=True)
@@ -155,11 +155,14 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             backend = raycast.make_backend(mesh, vis_opts.backend)
             values, _ = render_view(data, light, material, backend,
                                     scene_albedo(scene, material_path, mesh, camera, read_pose(view.pose)))
+            gain = view_gain(scene, view) if opts.light is None else 1.0
+            values = values * gain  # (another photo of the scene: at its own exposure, as solve fitted it)
             backdrop, scale_ref = _display_photos(scene, opts, camera, ref if own_photo and ref_path == view.image else None)
             outputs = write_view(out, opts.name, values, data.samples.pixel, (camera.height, camera.width), backdrop,
                                  opts.exposure, scale_ref, mesh_coverage(view, camera, backend.mesh, backend))
             summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
-                       "view": view.name, "material": material.to_json(), "pixels": int(len(values)),
+                       "view": view.name, "view_exposure": gain, "material": material.to_json(),
+                       "pixels": int(len(values)),
                        "resolution": data.cube.resolution}
             residual = out / f"{opts.name}_residual.png"
             if ref is not None:

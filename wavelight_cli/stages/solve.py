@@ -26,7 +26,7 @@ from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_co
                      scene_mesh, scene_views)
 from .visibility import visibility_stage
 
-VERSION = 13  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 14  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
@@ -38,7 +38,8 @@ VERSION = 13  # 4: the sampled route; reflectance rounds compare their own held-
 #   before the solve, tried in 10, taken out again: it moved glossy fits to worse optima); 12: the exact recast
 #   corrects the system in place (the rows it changed; the same light), solve_report.json's exact_directions.changed;
 #   13: the robust pass (--robust: rows the model cannot explain down-weighted; --clipped bound: clipped pixels
-#   as lower bounds), solve_report.json's `robust`
+#   as lower bounds), solve_report.json's `robust`; 14: reflectance rounds chosen by held-out error,
+#   --view-exposure, views' exposure and gain_left
 COMPARE_VERSION = 7  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve
 #   10, 11; 7: as solve 12
 
@@ -121,6 +122,13 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
             mesh = scene_mesh(scene.mesh)  # (read once when the visibility stage ran in this process)
             albedo = _pixel_albedo(scene, mesh, data, views, cameras, layout, parts, console) if parts.parts else None
+            gains, exposure_info = np.ones(len(views)), None
+            if len(views) > 1 and opts.view_exposure == "fit":  # (photos of another exposure: their gains first)
+                gains, exposure_info = mv.fit_exposures(data, *ctl.prepare_photo(data, stacked, opts, photo_path)[:2],
+                                                        layout, albedo)
+                stacked = mv.apply_exposures(stacked, layout, gains)
+                console.say("solve: exposure of each photo relative to main (fitted): " + ", ".join(
+                    f"{v.label} {g:.4g}" for v, g in zip(views, gains)))
             backend = scene_backend(mesh, vis_opts.backend)
             result = ctl.solve_scene(data, stacked, material, opts, refl, given,
                                      backend if data.method == "adaptive" else None, photo_path,
@@ -139,14 +147,25 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 resp = mv.responses(result.vis, layout)
                 by_view = mv.observability_by_view(resp, layout)
                 per_view = mv.per_view_errors(result, values, usable, held_rows, layout, holdout, opts.bounds)
+                left = mv.final_gains(result.relit, values, usable, layout)
+                for k, v in enumerate(views):
+                    per_view[v.label]["exposure"] = float(gains[k])
+                    per_view[v.label]["gain_left"] = float(left[k])
+                off = [f"{v.label} {left[k]:.3f}" for k, v in enumerate(views) if abs(left[k] - 1) > mv.EXPOSURE_WARN]
+                if off:
+                    console.say("solve: warning: the final light predicts some photos brighter or darker than they are "
+                                f"(least-squares gain, main = 1: {', '.join(off)})" + (
+                                    "; photos of different exposure? try --view-exposure fit"
+                                    if opts.view_exposure == "same" else ""))
             for k, (v, cam, (_, ph)) in enumerate(zip(views, cameras, photos)):
                 sl = layout.rows(k)
                 pix = layout.image_pixels(data.samples.pixel, k)
                 vdir = out if k == 0 else out / "views" / v.label
                 cover = mesh_coverage(v, cam, mesh, backend)
-                outputs += write_view(vdir, "relit", result.relit[sl], pix, (cam.height, cam.width), ph.pixels,
+                relit_k = result.relit[sl] * gains[k]  # (at the view's own exposure, as its photo)
+                outputs += write_view(vdir, "relit", relit_k, pix, (cam.height, cam.width), ph.pixels,
                                       exposure, cover=cover)
-                outputs.append(write_residual(vdir / "residual.png", result.relit[sl], ph.pixels[pix[:, 0], pix[:, 1]],
+                outputs.append(write_residual(vdir / "residual.png", relit_k, ph.pixels[pix[:, 0], pix[:, 1]],
                                               pix, (cam.height, cam.width), ~ph.saturated[pix[:, 0], pix[:, 1]]))
                 if result.robust_weights is not None:
                     outputs.append(write_robust_weights(vdir / "robust_weights.png", result.robust_weights[sl], pix,
@@ -177,6 +196,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                       "basis": sol.basis,
                       "options": {**asdict(opts.light), "held_out": opts.held_out, "linear_input": opts.linear_input,
                                   "exact": opts.exact, "robust": opts.robust, "clipped": opts.clipped,
+                                  "view_exposure": opts.view_exposure,
                                   "resolution": vis_opts.resolution,
                                   "hemisphere": vis_opts.hemisphere, "supersample": vis_opts.supersample,
                                   "visibility": data.method, "reflectance": asdict(refl),
@@ -190,6 +210,12 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                     per_view[v.label]["outputs"] = cache.relative(out if v.label == MAIN_VIEW
                                                                   else out / "views" / v.label)
                 report["views"] = per_view
+                report["view_exposure"] = exposure_info or {
+                    "mode": "same", "note": "the photos are taken to be of one exposure (--view-exposure same)"}
+                report["view_exposure"]["note_gains"] = (
+                    "views.NAME.exposure: the gain the photo was divided by before the solve (main = 1); "
+                    "views.NAME.gain_left: the final light's least-squares gain against the corrected photo "
+                    "(1: nothing left to explain)")
                 report["observability_by_view"] = by_view
                 report["relit_note"] = "relit: the final light over the used pixels of every view together"
             outputs.append(write_json(out / "solve_report.json", report))
