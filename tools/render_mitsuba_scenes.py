@@ -276,8 +276,9 @@ def mitsuba_emitter(light: np.ndarray, workdir: Path):
     big = np.repeat(np.repeat(light, ENV_SUPERSAMPLE, axis=0), ENV_SUPERSAMPLE, axis=1)
     path = workdir / "envmap_mitsuba.exr"
     images.write_exr(path, exports.to_mitsuba(big))
-    holder = mi.load_string('<scene version="3.0.0">\n' + exports.mitsuba_xml(str(path)) + "</scene>\n")
-    return holder.emitters()[0]
+    path_xml = workdir / "emitter.xml"  # (the file as exported: a standalone element with its version)
+    path_xml.write_text(exports.mitsuba_xml(str(path)))
+    return mi.load_file(str(path_xml))
 
 
 def emitter_eval(emitter, directions: np.ndarray) -> np.ndarray:

@@ -20,4 +20,11 @@ def render_view(vis, light: np.ndarray, material, backend=None, albedo=None) -> 
         if len(recast):
             stored = recast_columns(backend, vis.samples, vis.cube, np.asarray(vis.stored), recast, vis.supersample)
             vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method)
-    return render(vis, light, material, albedo=None if albedo is None else albedo(vis.samples)), recast
+    return render(vis, light, material, albedo=None if albedo is None else albedo(vis.samples),
+                  specular=_specular(albedo, vis.samples)), recast
+
+
+def _specular(shading, samples):
+    """The parts' specular weights of some pixel samples (`parts.ViewShading`), None: all glossy."""
+    spec = getattr(shading, "specular", None)
+    return None if spec is None else spec(samples)

@@ -194,6 +194,8 @@ class _Systems:
         self.held_w = self.held_sample.weights
         self.fit_rows = TransportRows(vis, self.fit_sample.rows)
         self.held_rows = TransportRows(vis, self.held_sample.rows)
+        if albedo is not None:  # (parts declared matte in materials.toml: no lobe on their rows)
+            self.set_glossy(albedo.glossy, albedo.glossy_source)
         self.sample_info = {"fit": self.fit_sample.summary(), "held_out": self.held_sample.summary(),
                             "explore_rows": min(EXPLORE_ROWS, len(self.fit_sample.rows))}
 
@@ -207,7 +209,8 @@ class _Systems:
             ne = build_normal_equations(self.vis, self.values, material, use=self.usable, held_out=self.held,
                                         progress=lambda done, total: self.progress.advance("normal equations", done,
                                                                                            total, "pixels"),
-                                        albedo=None if self.albedo is None else self.albedo.values())
+                                        albedo=None if self.albedo is None else self.albedo.values(),
+                                        specular=self.specular_weight())
             self.progress.note(f"normal equations in {ne.seconds:.1f} s")
             return ne
         t0 = time.perf_counter()
@@ -224,6 +227,27 @@ class _Systems:
                                    albedo=None if a is None else a.base[hs.rows],
                                    group=None if a is None else a.part[hs.rows], **grouped)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
+
+    def specular_weight(self, rows=None) -> np.ndarray | None:
+        """(P,) (or of `rows`) 0 for the pixels of matte parts, None when every pixel has the lobe."""
+        return None if self.albedo is None else self.albedo.specular_weight(rows)
+
+    def set_glossy(self, glossy: np.ndarray | None, sources: list | None = None) -> None:
+        """Which parts have the specular term ((parts,) bool; `parts.glossy_parts`): the transport rows
+        of matte parts lose the lobe (and a coating), and the reflectance fits leave them out."""
+        self.albedo.glossy, self.albedo.glossy_source = glossy, sources
+        if not self.options.exact:
+            w = self.specular_weight()
+            self.fit_rows.set_specular(None if w is None else w[self.fit_sample.rows])
+            self.held_rows.set_specular(None if w is None else w[self.held_sample.rows])
+
+    def glossy_rows(self, rows):
+        """(rows, weights) for a reflectance fit without the rows of matte parts."""
+        w = self.specular_weight()
+        if rows is None or w is None:
+            return rows
+        keep = w[rows[0]] > 0
+        return rows[0][keep], rows[1][keep]
 
     def highlight_rows(self, light: np.ndarray, kd, n_fit: int, n_held: int) -> tuple[np.ndarray, np.ndarray]:
         """Rows for a reflectance fit, with the weights that make them stand for all used pixels: the
@@ -267,8 +291,9 @@ class _Systems:
         if self.options.exact:
             rows = np.flatnonzero(self.usable & ~self.held)
             weights = np.ones(len(rows))
-            diffuse = render(self.vis, L, replace(material, ks=(0.0, 0.0, 0.0)))[rows]
-            spec = render(self.vis, L, replace(material, kd=(0.0, 0.0, 0.0)))[rows] if material.specular else None
+            diffuse = render(self.vis, L, replace(material, ks=(0.0, 0.0, 0.0)), specular=self.specular_weight())[rows]
+            spec = render(self.vis, L, replace(material, kd=(0.0, 0.0, 0.0)),
+                          specular=self.specular_weight())[rows] if material.specular else None
         else:
             rows, weights = self.fit_sample.rows, self.fit_w
             Lf = L.astype(np.float32)
@@ -705,11 +730,38 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     lm_rows = probe_rows = None
     if not options.exact:  # the LM fits the same pixels the light is fitted to; the probe a few of them
-        def lm_rows(light, kd):
-            return systems.highlight_rows(light, kd, LM_ROWS, LM_ROWS // 4)
+        def lm_rows(light, kd):  # (of the glossy parts: `decide_glossy`)
+            return systems.glossy_rows(systems.highlight_rows(light, kd, LM_ROWS, LM_ROWS // 4))
 
         def probe_rows(light):
-            return systems.highlight_rows(light, material.kd, PROBE_ROWS, PROBE_ROWS // 2)
+            return systems.glossy_rows(systems.highlight_rows(light, material.kd, PROBE_ROWS, PROBE_ROWS // 2))
+
+    def fit_use():  # the pixels a reflectance fit may use: not those of matte parts
+        w = systems.specular_weight()
+        return usable if w is None else usable & (w > 0)
+
+    def decide_glossy(data, probe):
+        """auto, several parts: which parts the probe's lobe belongs on (`parts.glossy_parts`); their
+        rows alone are fitted from now on. Returns the (P,) glossy pixels and a note, or None when
+        there is nothing to decide (one part, or every part declared in materials.toml)."""
+        from ..model.parts import glossy_parts
+        from ..model.reflectance import SpecularData
+
+        if albedo is None or len(albedo.parts.parts) < 2 or all(p.specular is not None for p in albedo.parts.parts):
+            return None
+        # the probe's shading with the Lambertian light fixed: its base and its lobe at the fitted width
+        if isinstance(data, SpecularData):
+            D, S = data.diffuse, data.specular(probe.material.shininess)
+        else:
+            D, S = data.evaluate(probe.material.roughness)
+        glossy, sources, info = glossy_parts(albedo.parts, albedo.part[data.rows], D, S, data.photo,
+                                             reflectance.min_specular_gain)
+        systems.set_glossy(glossy, sources)
+        note = "specular term per part: " + ", ".join(
+            f"{p.name} {'glossy' if g else 'matte'} ({src})" for p, g, src in zip(albedo.parts.parts, glossy, sources))
+        progress.note(note)
+        w = systems.specular_weight()
+        return (np.ones(len(values), bool) if w is None else w > 0), info
     try:
         if reflectance.mode == "given":
             result = rf.fixed(material, round_light, "given", "given by the user (--material/--model/--kd/--ks/"
@@ -717,17 +769,20 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         elif reflectance.mode == "lambert":
             result = rf.fixed(Material(kd=material.kd), round_light, "lambert", "lambert: chosen by --reflectance",
                               on_round)
+        elif not fit_use().any() and systems.specular_weight() is not None:
+            result = rf.fixed(Material(kd=material.kd), round_light, reflectance.mode,
+                              "lambert: every part is matte (materials.toml: specular = false)", on_round)
         else:
             start = reflectance.start(material, given)
             progress.note(f"reflectance {reflectance.mode}: start {material_text(start)}")
             if reflectance.mode == "auto":
-                result = rf.select(vis, values, start, round_light, usable, held, material.kd,
+                result = rf.select(vis, values, start, round_light, fit_use(), held, material.kd,
                                    reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
                                    rows=lm_rows, probe_rows=probe_rows,
                                    plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
-                                   note=progress.note, albedo=current_albedo)
+                                   note=progress.note, albedo=current_albedo, per_part=decide_glossy)
             else:
-                result = rf.alternate(vis, values, start, round_light, usable, held, material.kd,
+                result = rf.alternate(vis, values, start, round_light, fit_use(), held, material.kd,
                                       reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo)
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
@@ -763,7 +818,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         return sol, system, np.union1d(done, texels)
 
     def relit_view(sol):
-        return render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values())
+        return render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values(),
+                      specular=systems.specular_weight())
 
     sol, system, recast = cast_bright(sol, system, recast)
     relit = relit_view(sol)

@@ -191,7 +191,8 @@ def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.nda
         held_relit = np.zeros_like(values)
         a = getattr(result, "albedo", None)  # the parts' per-pixel albedo (their fitted scales)
         held_relit[held_rows] = render(subset(result.vis, held_rows), held_light, result.material,
-                                       albedo=None if a is None else a.values(held_rows))
+                                       albedo=None if a is None else a.values(held_rows),
+                                       specular=None if a is None else a.specular_weight(held_rows))
     out = {}
     for k, name in enumerate(layout.names):
         sl = layout.rows(k)

@@ -662,7 +662,8 @@ def blender_material_script() -> str:
 
 
 # -- several parts (reflectance.json `parts`) --------------------------------------------------------
-# Each part's material is the scene's model with the part's diffuse colour: kd x its fitted scale x
+# Each part's material is the scene's model (Lambertian for a part whose `specular` is false) with the
+# part's diffuse colour: kd x its fitted scale x
 # its base (the .mtl / glTF colour of a plain part; the texture of a textured one, exported as a
 # linear bitmap: mitsuba/kd_<part>.exr, blender/base_<part>.exr, the texture times the part's diffuse
 # parameter in that tool). Every part shares one light, so one light scale covers all their colours.
@@ -695,7 +696,9 @@ def part_exports(material, parts: list[dict], scene_parts=None) -> list[PartExpo
             kd, pixels, exact = tuple(float(v) for v in p["scale"]), tex.levels[0], True
         else:
             kd, pixels, exact = tuple(float(v) for v in p["kd"]), None, not p.get("textured")
-        out.append(PartExport(p["name"], re.sub(r"[^A-Za-z0-9_.-]", "_", p["name"]), replace(material, kd=kd),
+        # (a matte part of a glossy scene, reflectance.json's "specular": false: Lambertian, its colour)
+        m = replace(material, kd=kd) if p.get("specular", True) else type(material)(kd=kd)
+        out.append(PartExport(p["name"], re.sub(r"[^A-Za-z0-9_.-]", "_", p["name"]), m,
                               pixels, p.get("texture") if tex is not None else None, exact))
     return out
 

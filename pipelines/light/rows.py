@@ -545,6 +545,27 @@ class TransportRows:
         self._diffuse: Pyramid | None = None
         self._coated: tuple | None = None  # (plastic key, D seen through the coating, the material)
         self._specular: dict = {}  # lobe key -> (S, the unit material)
+        self.specular_weight: np.ndarray | None = None  # (rows,) 0 where the pixel's part is matte
+
+    def set_specular(self, weight: np.ndarray | None) -> None:
+        """Which rows have the specular term ((rows,) 1 or 0; None: all): the rows of matte parts get
+        no lobe and, under `plastic`, no coating (`render.matte_rows`). The kept specular and coated
+        transports are dropped (built again under the new weights)."""
+        w = None if weight is None else np.asarray(weight, np.float32)
+        if w is not None and w.all():
+            w = None
+        if w is None and self.specular_weight is None:
+            return
+        self.specular_weight = w
+        self._coated = None
+        self._specular = {}
+
+    def _matte(self, D, S, V, index, material) -> None:
+        """`render.matte_rows` for rows `index` (into these rows) whose new transports are D and S."""
+        from ..model.render import matte_rows
+
+        if self.specular_weight is not None:
+            matte_rows(D, S, V, self.vis.samples.normal[index], self.vis.cube, material, self.specular_weight[index])
 
     def pyramids(self) -> list:
         """(pyramid, the material it was built with: None for the Lambertian D, kind) of every kept
@@ -574,8 +595,11 @@ class TransportRows:
                 continue
             if kind == "diffuse":
                 new = diffuse_transport(V[sel], normal[sel], v.cube, material, view[sel])
+                if material is not None:  # (a coated D: the matte rows' plain)
+                    self._matte(new, None, V[sel], index[sel], material)
             else:
                 new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material)
+                self._matte(None, new, V[sel], index[sel], material)
             pyramid.set_rows(index[sel], new)
 
     def diffuse(self, material=None, n_rows: int | None = None) -> Pyramid:
@@ -612,6 +636,8 @@ class TransportRows:
             sl = slice(sl.start, min(sl.stop, n))
             diffuse_transport(V[: sl.stop - sl.start], v.samples.normal[sl], v.cube, material, v.samples.view[sl],
                               out=D[sl])
+            if material is not None:  # (a coated D: the matte parts' rows plain)
+                self._matte(D[sl], None, V[: sl.stop - sl.start], np.arange(sl.start, sl.stop), material)
         return Pyramid(D, v.cube.tile_sizes)
 
     def specular(self, material, n_rows: int | None = None) -> Pyramid:
@@ -637,6 +663,7 @@ class TransportRows:
                 sl = slice(sl.start, min(sl.stop, n))
                 specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl], self.vis.samples.view[sl],
                                    self.vis.cube, unit, out=S[sl])
+                self._matte(None, S[sl], V[: sl.stop - sl.start], np.arange(sl.start, sl.stop), unit)
             self._specular = {key: (Pyramid(S, self.vis.cube.tile_sizes), unit)}
         return self._specular[key][0]
 

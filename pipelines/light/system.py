@@ -163,7 +163,7 @@ def _symmetrise(G: np.ndarray) -> np.ndarray:
 def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Material,
                            use: np.ndarray | None = None, held_out: np.ndarray | None = None,
                            rows: int = 2048, progress=None, threads: int | None = None,
-                           albedo: np.ndarray | None = None) -> LightSystem:
+                           albedo: np.ndarray | None = None, specular: np.ndarray | None = None) -> LightSystem:
     """Accumulate G, h, b'b for the fit and held-out pixel sets.
 
     Parameters
@@ -175,6 +175,7 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     held_out : (P,) bool, pixels kept out of the fit for model selection; default none.
     threads : worker threads (default: the machine's cores, at most 4).
     albedo : (P, 3) per-pixel relative albedo multiplying kd (several parts, textures); None: uniform.
+    specular : (P,) 0 for pixels of matte parts (no lobe: `model.render.transport`); None: all have it.
     """
     t0 = time.perf_counter()
     b = np.asarray(photo, dtype=np.float64)
@@ -196,7 +197,7 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     def block(sl: slice) -> dict:
         """Everything one block of pixel rows adds to the two parts (runs in a worker thread)."""
         V = vis.block(sl)
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl])
         bb = b[sl]
         add = {}
         for name, sel in (("fit", use[sl] & ~held_out[sl]), ("held_out", use[sl] & held_out[sl])):

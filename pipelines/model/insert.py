@@ -67,15 +67,17 @@ def insert(camera: Camera, pose: Pose, scene_mesh: Mesh, obj: Mesh, light: np.nd
         obj_stored = np.asarray(full_with)[obj_rows]
         without_stored = compute_visibility(make_backend(scene_mesh), scene_samples, cube, supersample).stored
     albedo = None if scene_albedo is None else scene_albedo(scene_samples)
+    spec = getattr(scene_albedo, "specular", None)
+    spec = None if spec is None else spec(scene_samples)  # (the parts without a lobe: `parts.ViewShading`)
     with_obj = np.zeros((len(samples), 3))
     with_obj[scene_rows] = render(VisibilityData(scene_samples, cube, supersample, with_stored), light, scene_material,
-                                  albedo=albedo)
+                                  albedo=albedo, specular=spec)
     if len(obj_rows):
         with_obj[obj_rows] = render(VisibilityData(_subset_samples(samples, obj_rows), cube, supersample, obj_stored),
                                     light, obj_material)
     without = np.zeros((len(samples), 3))
     without[scene_rows] = render(VisibilityData(scene_samples, cube, supersample, without_stored), light,
-                                 scene_material, albedo=albedo)
+                                 scene_material, albedo=albedo, specular=spec)
     img_with = pixels_to_image(with_obj, samples.pixel, H, W)
     img_without = pixels_to_image(without, samples.pixel, H, W)
     object_mask = np.zeros((H, W), bool)

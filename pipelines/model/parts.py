@@ -127,6 +127,8 @@ class Part:
     vertex_colours: bool = False
     faces: int = 0
     fit: str = "colour"  # reference (kept), colour (an RGB scale), scale (one grey scale)
+    specular: bool | None = None  # materials.toml `specular`: the scene's lobe on this part (True), not (False),
+    # or decided by the solve (None: `--reflectance auto` tests each part, `glossy_parts`)
 
 
 @dataclass
@@ -207,9 +209,13 @@ def _read_toml(path: Path) -> dict:
     if not isinstance(parts, dict) or not all(isinstance(v, dict) for v in parts.values()):
         raise InputError("`parts` must hold one [parts.NAME] table per part", path, "see README: Scene folder")
     for name, p in parts.items():
-        bad = set(p) - {"kd", "texture", "fit"}
+        bad = set(p) - {"kd", "texture", "fit", "specular"}
         if bad:
-            raise InputError(f"[parts.{name}]: unknown key(s) {sorted(bad)}", path, "use kd, texture and fit")
+            raise InputError(f"[parts.{name}]: unknown key(s) {sorted(bad)}", path, "use kd, texture, fit and specular")
+        if "specular" in p and not isinstance(p["specular"], bool):
+            raise InputError(f"[parts.{name}]: specular must be true or false, got {p['specular']!r}", path,
+                             "specular = false: a matte part (no lobe); true: the scene's lobe; leave it out: decided "
+                             "by the solve")
         if "kd" in p:
             kd = p["kd"]
             kd = [kd] * 3 if isinstance(kd, (int, float)) and not isinstance(kd, bool) else kd
@@ -295,7 +301,7 @@ def scene_parts(mesh, mesh_path: Path, scene_dir: Path, use_texture: bool = True
             kd, src = tuple(m["kd"]), f"{mtl_path.name} Kd"
         if "kd" in given:
             kd, src = given["kd"], "materials.toml kd"
-        part = Part(name, kd, src, faces=int(counts[k]))
+        part = Part(name, kd, src, faces=int(counts[k]), specular=given.get("specular"))
         if use_texture:
             tex_name = given.get("texture", m.get("map_Kd"))
             referrer = toml_path if "texture" in given else mtl_path
@@ -380,10 +386,20 @@ class PixelAlbedo:
     part: np.ndarray
     scales: np.ndarray
     parts: SceneParts
+    glossy: np.ndarray | None = None  # (parts,) bool: which parts have the specular term (None: all)
+    glossy_source: list | None = None  # per part, how that was decided
 
     def values(self, rows=None) -> np.ndarray:
         sl = slice(None) if rows is None else rows
         return self.base[sl] * self.scales[self.part[sl]]
+
+    def specular_weight(self, rows=None) -> np.ndarray | None:
+        """(P,) 1 for the pixels of glossy parts, 0 for matte ones (`render.transport`'s `specular`);
+        None when every part has the specular term."""
+        if self.glossy is None or np.all(self.glossy):
+            return None
+        sl = slice(None) if rows is None else rows
+        return self.glossy[self.part[sl]].astype(np.float32)
 
 
 def pixel_base(sp: SceneParts, mesh, face: np.ndarray, position: np.ndarray, footprint: np.ndarray):
@@ -492,9 +508,76 @@ def fit_scales(albedo: PixelAlbedo, rows: np.ndarray, weights: np.ndarray, diffu
     return new
 
 
-def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None) -> list[dict]:
+GLOSSY_SIGMAS = 3.0  # a part keeps the lobe when its own ks is this many sigmas above 0 ...
+GLOSSY_MIN_ROWS = 30  # ... on at least this many probe rows (fewer: it keeps the lobe, undecided)
+
+
+def declared_glossy(sp: SceneParts) -> tuple[np.ndarray | None, list | None]:
+    """The parts' specular term as materials.toml declares it (`specular`; undeclared: on, until the
+    solve decides): ((parts,) bool or None when all are on, per part its source or None)."""
+    glossy = np.array([p.specular is not False for p in sp.parts])
+    sources = ["materials.toml" if p.specular is not None else None for p in sp.parts]
+    if glossy.all() and not any(sources):
+        return None, None
+    return glossy, sources
+
+
+def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np.ndarray, photo: np.ndarray,
+                 min_gain: float) -> tuple[np.ndarray, list, list]:
+    """Which parts have a specular term: `--reflectance auto`'s test of each part, on the probe's rows
+    (the Lambertian light fixed, the lobe's width as the probe fitted it).
+
+    diffuse, lobe, photo : (rows, 3) the rows' base shading (kd = 1), lobe shading (ks = 1) and photo
+        (each row scaled by sqrt(its weight)); part : (rows,) each row's part.
+    Per part, kd (RGB) and one grey ks >= 0 are fitted to its rows alone (NNLS); the part is glossy
+    when ks exceeds GLOSSY_SIGMAS standard errors and the lobe lowers the part's error by `min_gain`
+    against kd alone. A part declared in materials.toml (`specular`) keeps its declaration; one with
+    fewer than GLOSSY_MIN_ROWS rows keeps the lobe (its pixels cannot tell). Returns the (parts,)
+    flags, each part's source, and per part the numbers."""
+    from scipy.optimize import nnls
+
+    glossy = np.ones(len(sp.parts), bool)
+    sources, info = [], []
+    for k, p in enumerate(sp.parts):
+        sel = np.flatnonzero(part == k)
+        rec = {"name": p.name, "rows": int(len(sel))}
+        if p.specular is not None:
+            glossy[k] = p.specular
+            sources.append("materials.toml")
+        elif len(sel) < GLOSSY_MIN_ROWS:
+            sources.append(f"too few probe rows to tell ({len(sel)}): kept")
+        else:
+            m = len(sel)
+            X = np.zeros((3 * m, 4))
+            for c in range(3):
+                X[c * m:(c + 1) * m, c] = diffuse[sel, c]
+                X[c * m:(c + 1) * m, 3] = lobe[sel, c]
+            y = photo[sel].T.ravel()
+            scale = np.sqrt((X**2).sum(axis=0))
+            scale[scale == 0] = 1.0
+            x, r_with = nnls(X / scale, y, maxiter=200)
+            x /= scale
+            _, r_without = nnls(X[:, :3] / scale[:3], y, maxiter=200)
+            dof = max(3 * m - 4, 1)
+            try:
+                cov = np.linalg.inv(X.T @ X) * (r_with**2 / dof)
+                sd = float(np.sqrt(max(cov[3, 3], 0.0)))
+            except np.linalg.LinAlgError:
+                sd = float("inf")
+            gain = 1.0 - r_with / r_without if r_without > 0 else 0.0
+            glossy[k] = bool(x[3] > GLOSSY_SIGMAS * sd and gain >= min_gain)
+            rec.update(ks=float(x[3]), ks_sigma=sd, gain=float(gain))
+            sources.append(f"auto: its own ks {x[3]:.3g} +- {sd:.2g}, lowers its error by {100 * gain:.1f} %")
+        rec["specular"] = bool(glossy[k])
+        info.append(rec)
+    return glossy, sources, info
+
+
+def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None, specular_model: bool = True
+                  ) -> list[dict]:
     """reflectance.json's `parts`: each part's name, faces, kd (mean over its surface), texture, the
-    fitted scale, its fit mode and its albedo relative to the reference part's."""
+    fitted scale, its fit mode, its albedo relative to the reference part's and whether it has the
+    scene's specular term (`specular_model` False: the scene's model has none)."""
     sp = albedo.parts
     kd = np.asarray(material_kd, float)
     means = [kd * albedo.scales[k] * part_mean_base(sp, mesh, k) for k in range(len(sp.parts))]
@@ -508,7 +591,11 @@ def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None) 
                     "texture": None if tex is None else Path(tex).name if p.texture is not None else tex,
                     "textured": tex is not None, "scale": (kd * albedo.scales[k]).tolist(),
                     "albedo_scale": albedo.scales[k].tolist(),
-                    "relative_to_reference": (means[k] / np.where(ref > 0, ref, 1.0)).tolist()})
+                    "relative_to_reference": (means[k] / np.where(ref > 0, ref, 1.0)).tolist(),
+                    "specular": specular_model and (albedo.glossy is None or bool(albedo.glossy[k])),
+                    "specular_decided_by": "the scene's model has no specular term" if not specular_model else (
+                        (albedo.glossy_source or [None] * len(sp.parts))[k] or (
+                            "materials.toml" if p.specular is not None else "every part (one model for the scene)"))})
     return out
 
 
@@ -525,12 +612,33 @@ def view_albedo(reflectance: dict | None, mesh, mesh_path: Path, scene_dir: Path
         return None
     fitted = {p["name"]: p.get("albedo_scale", [1.0, 1.0, 1.0]) for p in reflectance["parts"]}
     scales = np.array([fitted.get(n, [1.0, 1.0, 1.0]) for n in sp.names], float)
+    on = {p["name"]: bool(p.get("specular", True)) for p in reflectance["parts"]}
+    glossy = np.array([on.get(n, True) for n in sp.names])
+    return ViewShading(sp, mesh, scales, None if glossy.all() else glossy, camera, pose)
 
-    def albedo(samples) -> np.ndarray:
-        base, part = pixel_base(sp, mesh, samples.face, samples.position, pixel_footprint(samples, camera, pose))
-        return base * scales[part]
 
-    return albedo
+@dataclass
+class ViewShading:
+    """A solve's parts seen from a camera (relight, insert): called on pixel samples it gives their
+    relative albedo (P, 3); `specular(samples)` their specular weights (`render.transport`), None when
+    every part has the lobe."""
+
+    sp: SceneParts
+    mesh: object
+    scales: np.ndarray
+    glossy: np.ndarray | None
+    camera: object
+    pose: object
+
+    def __call__(self, samples) -> np.ndarray:
+        base, part = pixel_base(self.sp, self.mesh, samples.face, samples.position,
+                                pixel_footprint(samples, self.camera, self.pose))
+        return base * self.scales[part]
+
+    def specular(self, samples) -> np.ndarray | None:
+        if self.glossy is None:
+            return None
+        return self.glossy[self.sp.face_part[np.asarray(samples.face, np.int64)]].astype(np.float32)
 
 
 # -- the per-part factors with the light re-solved: variable projection on a fixed tree -------------

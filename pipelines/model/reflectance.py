@@ -651,7 +651,7 @@ def fixed(material: Material, solve_light: SolveLight, mode: str, decision: str,
 def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
            use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
            min_gain: float = 0.05, max_rounds: int = 8, tol: float = ROUND_TOL, progress=None,
-           rows=None, probe_rows=None, plastic_starts=(), note=None, albedo=None) -> Reflectance:
+           rows=None, probe_rows=None, plastic_starts=(), note=None, albedo=None, per_part=None) -> Reflectance:
     """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
 
     1. Light under Lambert (kd = kd_reference).
@@ -667,6 +667,9 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
        held-out error under its first light: the probe's Phong lobe, the best plastic) is
        alternated with the light; the lowest held-out error of those is kept if it beats the
        Lambertian light's by `min_gain`.
+    `per_part(data, probe)`: with several parts, which of them the lobe belongs on, once the probe
+    found one (None: nothing to decide; else ((P,) bool pixels of the glossy parts, what it found)):
+    the fits after it use those pixels alone.
     """
     t0 = time.perf_counter()
     kd_ref = start.kd if kd_reference is None else kd_reference
@@ -739,6 +742,16 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         nor = " (nor does a plastic one)" if any(k.startswith("lambert_probe_") for k in candidates) else ""
         return stay(f"lambert: a {start.model} term fitted with the Lambertian light fixed is not significant "
                     f"(ks {ks:.3g} +- {sd:.2g}){nor}", [r0, probe_round])
+    if per_part is not None:
+        decided = per_part(data, probe)
+        if decided is not None:
+            keep, info = decided
+            candidates["parts"] = info
+            if not keep.any():
+                return stay("lambert: the probe's lobe is significant on no part of its own", [r0, probe_round])
+            if chosen is not None:
+                chosen = (chosen[0][keep[chosen[0]]], chosen[1][keep[chosen[0]]])
+            use = keep if use is None else (np.asarray(use, bool) & keep)
     # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
     # candidates are then fitted with that light fixed (it holds a highlight-free sun, unlike
     # Lambert's, which bends towards the highlights), from the alpha that matches the probe's

@@ -78,7 +78,7 @@ def specular_factors(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube
 
 
 def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-              material: Material) -> tuple[np.ndarray, np.ndarray | None]:
+              material: Material, specular: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Transport blocks for a set of pixels: the light texels' contributions per unit radiance.
 
     The radiance of a texel is constant over it (that is what a texel value means), so its
@@ -94,6 +94,9 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     V : (P, N) float32 visibility in [0, 1].
     normals, views : (P, 3) shading normals and unit directions to the camera.
     cube : the texel layout.
+    specular : (P,) 1 where the pixel's surface has the material's specular term, 0 where it is
+        Lambertian (a matte part of a scene whose other parts are glossy: no lobe, and under `plastic`
+        no coating: plain D); None: every pixel has it.
 
     Returns
     -------
@@ -103,7 +106,23 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     D = diffuse_transport(V, normals, cube, material, views)
     if not material.specular:
         return D, None
-    return D, specular_transport(V, normals, views, cube, material)
+    S = specular_transport(V, normals, views, cube, material)
+    if specular is not None:
+        matte_rows(D, S, V, normals, cube, material, specular)
+    return D, S
+
+
+def matte_rows(D: np.ndarray | None, S: np.ndarray | None, V: np.ndarray, normals: np.ndarray, cube: CubeMap,
+               material: Material, specular: np.ndarray) -> None:
+    """In place: the rows of pixels without the specular term (`specular` (P,) 0) lose the lobe (S
+    rows 0) and, under `plastic`, the coating (D rows the plain Lambertian ones)."""
+    matte = np.flatnonzero(np.asarray(specular) == 0)
+    if not len(matte):
+        return
+    if S is not None:
+        S[matte] = 0.0
+    if D is not None and material.model == PLASTIC:
+        D[matte] = diffuse_transport(V[matte], normals[matte], cube, None)
 
 
 def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, material: Material | None = None,
@@ -243,11 +262,12 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
 
 
 def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048,
-           albedo: np.ndarray | None = None) -> np.ndarray:
+           albedo: np.ndarray | None = None, specular: np.ndarray | None = None) -> np.ndarray:
     """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3).
 
     `albedo`: (P, 3) a per-pixel relative albedo (several parts, textures: `model.parts`) that
-    multiplies the material's kd pixel by pixel; None: kd alone, uniform."""
+    multiplies the material's kd pixel by pixel; None: kd alone, uniform. `specular`: (P,) 0 for the
+    pixels of matte parts (no lobe, no coating: `transport`), None: the material's term everywhere."""
     L = np.asarray(light, dtype=np.float64)
     if L.ndim == 1:
         L = np.repeat(L[:, None], 3, axis=1)
@@ -259,7 +279,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     Lf = L.astype(np.float32)
     s = vis.samples
     for sl, V in vis.blocks(rows, raw=True):
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material)
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl])
         out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
         if S is not None:
             out[sl] += ks * (S @ Lf)

@@ -291,11 +291,15 @@ def _parts_table(s: Section, refl: dict):
 
     ref = (refl.get("reference_part") or {}).get("name")
     s.p(f"Parts: one {refl.get('model')} model for the scene, a diffuse colour per part (kd: the mean over the "
-        f"part's surface). The reference part **{ref}** keeps its start colour; light × albedo is known only as a "
-        "product, so what the photo tells is each part's albedo relative to it.")
-    s.table(["part", "faces", "pixels", "texture", "fit", "kd (mean)", "scale", "relative to reference"],
+        f"part's surface); the glossy parts wear its specular term, the matte ones none. The reference part "
+        f"**{ref}** keeps its start colour; light × albedo is known only as a product, so what the photo tells is "
+        "each part's albedo relative to it.")
+    s.table(["part", "faces", "pixels", "texture", "fit", "kd (mean)", "scale", "relative to reference", "specular"],
             [[p["name"], str(p["faces"]), str(p["pixels"]), p["texture"] or "–", p["fit"], rgb(p["kd"]),
-              rgb(p["scale"]), rgb(p["relative_to_reference"])] for p in refl["parts"]], "lrrllrrr")
+              rgb(p["scale"]), rgb(p["relative_to_reference"]),
+              ("yes" if p.get("specular", True) else "no") + (f" ({p['specular_decided_by']})"
+                                                              if p.get("specular_decided_by") else "")]
+             for p in refl["parts"]], "lrrllrrrl")
 
 
 def _reflectance(doc: Doc, refl: dict, made: dict):

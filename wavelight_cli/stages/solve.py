@@ -184,7 +184,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 from pipelines.model.parts import parts_summary
 
                 sp = albedo.parts
-                reflectance["parts"] = parts_summary(albedo, mesh, m.kd)
+                reflectance["parts"] = parts_summary(albedo, mesh, m.kd, specular_model=m.specular)
                 reflectance["parts_options"] = parts.cache_params()
                 reflectance["reference_part"] = {"name": sp.names[sp.reference], "chosen_by": sp.reference_source}
                 reflectance["scale_ambiguity"] = (
@@ -296,7 +296,7 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
         f"{p.name} ({p.faces} faces, {int(seen[k])} pixels, "
         f"{'texture ' + Path(p.texture.path).name if p.texture is not None else 'vertex colours' if p.vertex_colours else 'kd'}"
         f"{', reference' if k == sp.reference else ''})" for k, p in enumerate(sp.parts)))
-    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp)
+    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp, *pm.declared_glossy(sp))
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:

@@ -1,0 +1,149 @@
+"""Make tests/data/scenes/spot_glossy_sun: spot_textured_sun's geometry, cameras and light, with Spot
+under a glossy coating (Mitsuba `roughplastic`, GGX alpha 0.15, IOR 1.49, its colour texture the
+coating's diffuse base) on the same matte ground: a scene of two parts of which one is glossy.
+
+Usage:
+    PYTHONPATH=. .venv/bin/python tools/make_glossy_parts_scene.py [--spp 1024] [--dest tests/data/scenes]
+
+Mitsuba 3 renders it with its `scalar_rgb` variant (`direct` integrator, Mitsuba's own OBJ loader,
+`tests/tool_scenes.render_mitsuba_parts`): the LLVM variants that tools/render_mitsuba_scenes.py
+uses cannot compile on this machine's LLVM 15/16 ("Cannot select fminimum"), and that script's
+vectorised camera and coverage code needs them. Everything but the photos is spot_textured_sun's
+(masks, correspondences, poses: the geometry is the same); the light goes to Mitsuba as wavelight
+exports it (each lat-long pixel 16 x 16 times, `exports.to_mitsuba`, `exports.mitsuba_xml`). The
+noise added is the shared scenes': N(0, sigma), sigma = 0.5 % of the mean clean radiance over mask.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE / "tests"))
+
+from pipelines.io import exports, images  # noqa: E402
+
+SOURCE = "spot_textured_sun"
+NAME = "spot_glossy_sun"
+ALPHA, DISTRIBUTION, INT_IOR, EXT_IOR = 0.15, "ggx", 1.49, 1.000277
+GROUND = (0.35, 0.45, 0.6)
+ENV_SUPERSAMPLE = 16
+NOISE_REL = 0.005
+SEED = 32400
+
+
+def bsdf_files(folder: Path, texture: Path) -> dict:
+    spot = folder / "bsdf_spot.xml"
+    spot.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
+    <string name="distribution" value="{DISTRIBUTION}"/>
+    <float name="alpha" value="{ALPHA}"/>
+    <float name="int_ior" value="{INT_IOR}"/>
+    <float name="ext_ior" value="{EXT_IOR}"/>
+    <boolean name="nonlinear" value="false"/>
+    <texture type="bitmap" name="diffuse_reflectance">
+        <string name="filename" value="{texture}"/>
+        <boolean name="raw" value="false"/>
+        <string name="filter_type" value="bilinear"/>
+        <string name="wrap_mode" value="repeat"/>
+    </texture>
+</bsdf>
+""")
+    ground = folder / "bsdf_ground.xml"
+    ground.write_text(f"""<bsdf type="diffuse" version="3.0.0">
+    <rgb name="reflectance" value="{GROUND[0]} {GROUND[1]} {GROUND[2]}"/>
+</bsdf>
+""")
+    return {"spot": spot, "ground": ground}
+
+
+def render_view(src: Path, camera: Path, pose: Path, work: Path, bsdfs: dict, spp: int, seed: int) -> np.ndarray:
+    """Mitsuba's render of the scene's mesh from one camera and pose (a folder for render_mitsuba_parts)."""
+    from tool_scenes import render_mitsuba_parts
+
+    view = work / f"view_{seed}"
+    view.mkdir()
+    shutil.copyfile(src / "mesh.obj", view / "mesh.obj")
+    shutil.copyfile(src / "mesh.mtl", view / "mesh.mtl")
+    shutil.copyfile(src / "spot_texture.png", view / "spot_texture.png")
+    shutil.copyfile(camera, view / "camera.json")
+    shutil.copyfile(pose, view / "pose.json")
+    return render_mitsuba_parts(view, work, spp, bsdf_files=bsdfs, seed=seed)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--spp", type=int, default=2048)
+    parser.add_argument("--dest", type=Path, default=HERE / "tests" / "data" / "scenes")
+    args = parser.parse_args()
+    src = HERE / "tests" / "data" / "scenes" / SOURCE
+    dst = args.dest / NAME
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns(".wavelight", "out", "image.png"))
+    light = images.read_image(src / "truth" / "env_latlong.exr").pixels
+    rng = np.random.default_rng(SEED)
+    t0 = time.time()
+    noise = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        (work / "mitsuba").mkdir()
+        big = np.repeat(np.repeat(light, ENV_SUPERSAMPLE, axis=0), ENV_SUPERSAMPLE, axis=1)
+        images.write_exr(work / "mitsuba" / "light.exr", exports.to_mitsuba(big))
+        (work / "mitsuba" / "emitter.xml").write_text(exports.mitsuba_xml("light.exr"))
+        bsdfs = bsdf_files(work, src / "spot_texture.png")
+        views = [("main", src, dst, dst / "truth")]
+        views += [(p.name, p, dst / "views" / p.name, None) for p in sorted((src / "views").iterdir())]
+        for k, (name, folder, out, truth) in enumerate(views):
+            camera = folder / "camera.json" if (folder / "camera.json").is_file() else src / "camera.json"
+            clean = render_view(src, camera, folder / "pose.json", work, bsdfs, args.spp, SEED + k).astype(np.float32)
+            mask = images.read_mask(folder / "mask.png")
+            sigma = NOISE_REL * float(clean[mask].mean())
+            noisy = np.clip(clean + rng.normal(0.0, sigma, clean.shape), 0.0, None).astype(np.float32)
+            images.write_exr(out / "image.exr", noisy)
+            if truth is not None:
+                images.write_exr(truth / "image_clean.exr", clean)
+            noise[name] = sigma
+            print(f"  {name}: {time.time() - t0:.0f} s, noise sigma {sigma:.3g}")
+        novel = src / "truth" / "novel_view"
+        clean = render_view(src, novel / "camera.json", novel / "pose.json", work, bsdfs, args.spp, SEED + 50)
+        images.write_exr(dst / "truth" / "novel_view" / "image.exr", clean.astype(np.float32))
+        print(f"  novel view: {time.time() - t0:.0f} s")
+    material = json.loads((src / "truth" / "material.json").read_text())
+    material["parts"]["spot"] = {
+        "type": "roughplastic", "distribution": DISTRIBUTION, "alpha": ALPHA, "int_ior": INT_IOR, "ext_ior": EXT_IOR,
+        "nonlinear": False, "diffuse_reflectance": "spot_texture.png (bitmap, sRGB decoded, bilinear, repeat)",
+        "kd_mean": material["parts"]["spot"]["kd_mean"],
+        "formula": "Mitsuba roughplastic: specular = microfacet F D G / (4 cos_i cos_o), GGX, Smith G; diffuse = "
+                   "texture(uv) / (1 - Fdr_int) / eta^2 / pi * (1 - F(cos_i)) (1 - F(cos_o)) (nonlinear=false)"}
+    (dst / "truth" / "material.json").write_text(json.dumps(material, indent=1) + "\n")
+    params = json.loads((src / "truth" / "scene_params.json").read_text())
+    params.update(name=NAME, set="glossy parts", material=material, mitsuba={"variant": "scalar_rgb"},
+                  render={"integrator": "direct (Mitsuba's default: MIS of emitter and BSDF samples)",
+                          "sampler": "independent", "spp": args.spp, "noise_sigma": noise, "noise_rel": NOISE_REL,
+                          "made_by": "tools/make_glossy_parts_scene.py from " + SOURCE,
+                          "render_time_s": time.time() - t0})
+    params.pop("verification", None)
+    (dst / "truth" / "scene_params.json").write_text(json.dumps(params, indent=1) + "\n")
+    (dst / "README.txt").write_text(
+        f"Scene {NAME}: {SOURCE}'s mesh (mesh.obj, mesh.mtl: parts spot and ground), cameras, poses, masks and\n"
+        f"correspondences (main photo and views/left, views/right), under the same light (truth/env_latlong.exr),\n"
+        f"with Spot under a glossy coating: Mitsuba roughplastic ({DISTRIBUTION}, alpha {ALPHA}, int_ior {INT_IOR}),\n"
+        f"spot_texture.png (sRGB) its diffuse base; the ground Mitsuba diffuse {list(GROUND)}. Rendered by\n"
+        f"tools/make_glossy_parts_scene.py (Mitsuba 3 scalar_rgb, direct, {args.spp} spp) + N(0, 0.5 % of the mean\n"
+        f"over mask.png). truth/: image_clean.exr (main), novel_view/image.exr (clean), material.json, scene_params.json.\n"
+        "Nothing in the scene folder says which part is glossy (mesh.mtl is the diffuse scene's).\n")
+    print(f"{NAME}: written to {dst} in {time.time() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
