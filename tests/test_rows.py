@@ -154,7 +154,7 @@ def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precisi
     """Rows of several parts keep each part's tree system at factor 1 (with a specular term, its
     diffuse, cross and specular pieces): the system under any factors is the one of rows whose kd
     has those factors applied, and `with_scales` serves it from the kept pieces (the rows' leaf
-    sums are not formed again)."""
+    sums are not formed again); a uniform part's pieces (one Gram matrix) equal a textured one's."""
     from pipelines.light import rows as rows_module
 
     _, vis = _small_vis(mitsuba_scene)
@@ -164,6 +164,7 @@ def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precisi
     weights = rng.uniform(0.5, 2.0, len(rows))
     base = rng.uniform(0.3, 1.2, (len(rows), 3))
     group = rng.integers(0, 3, len(rows))
+    base[group == 0] = (0.8, 0.5, 0.3)  # part 0 uniform (one Gram matrix for its channels), 1 and 2 textured
     s1, s2 = rng.uniform(0.5, 2.0, (3, 3)), rng.uniform(0.5, 2.0, (3, 3))
     tr = TransportRows(vis, rows)
     grouped = tr.part(material, photo, weights, 5000, albedo=base, group=group, scales=s1)

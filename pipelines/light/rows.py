@@ -284,15 +284,23 @@ class RowsPart:
         kd = np.asarray(self.kd, np.float64)
         kd = kd[sel] if kd.ndim == 2 else np.broadcast_to(kd, (len(sel), C))
         t = None if A_S is None else A_S[sel].astype(dtype) * sw.astype(dtype)[:, None]
-        out = {"DD": [], "hD": [], "X": [], "bb": (b**2).sum(axis=0)}
-        for c in range(C):
-            a = A_D[sel].astype(dtype) * (sw * kd[:, c]).astype(dtype)[:, None]
-            out["DD"].append(_gram(a))
-            out["hD"].append(_rhs(a, b[:, c]))
-            if t is not None:
-                out["X"].append((a.T @ t).astype(np.float64))
-        out["DD"], out["hD"] = np.stack(out["DD"]), np.column_stack(out["hD"])
-        out["X"] = np.stack(out["X"]) if t is not None else None
+        base = A_D[sel].astype(dtype) * sw.astype(dtype)[:, None]  # sqrt(w) A_D
+        out = {"bb": (b**2).sum(axis=0)}
+        if len(sel) and np.all(kd == kd[0]):  # a uniform part (no texture): a_c = kd_c sqrt(w) A_D, one Gram
+            k = kd[0]
+            out["DD"] = k[:, None, None] ** 2 * _gram(base)[None]
+            out["hD"] = np.column_stack([k[c] * _rhs(base, b[:, c]) for c in range(C)])
+            out["X"] = None if t is None else k[:, None, None] * (base.T @ t).astype(np.float64)[None]
+        else:  # a textured part: kd differs from row to row in each channel, a Gram matrix per channel
+            DD, hD, X = [], [], []
+            for c in range(C):
+                a = base * kd[:, c].astype(dtype)[:, None]
+                DD.append(_gram(a))
+                hD.append(_rhs(a, b[:, c]))
+                if t is not None:
+                    X.append((a.T @ t).astype(np.float64))
+            out["DD"], out["hD"] = np.stack(DD), np.column_stack(hD)
+            out["X"] = np.stack(X) if t is not None else None
         out["SS"] = None if t is None else _gram(t)
         out["hS"] = None if t is None else np.column_stack([_rhs(t, b[:, c]) for c in range(C)])
         return out
