@@ -260,9 +260,10 @@ def _set_bits(packed: np.ndarray):
     Returns (row, texel) of each set bit in row-major order, and `where`: the (row, byte) of each
     non-zero byte with, per set bit, its byte's position in that list and its bit (for `_pack_bits`).
     """
-    byte_rows, byte_cols = np.nonzero(packed)
-    bits = np.unpackbits(packed[byte_rows, byte_cols][:, None], axis=1, bitorder="little")  # (bytes, 8)
-    k, b = np.nonzero(bits)
+    flat = np.flatnonzero(packed)  # (flat indices and shifts: ~2x numpy's 2-D nonzero)
+    byte_rows, byte_cols = np.divmod(flat, packed.shape[1])
+    bits = np.flatnonzero(np.unpackbits(packed.ravel()[flat], bitorder="little"))  # byte k's bit b: 8 k + b
+    k, b = bits >> 3, bits & 7
     return byte_rows[k], byte_cols[k] * 8 + b, (byte_rows, byte_cols, k, b)
 
 
@@ -371,7 +372,9 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
         offsets = [(h * dr, h * dc) for dr, dc in ring]  # every known one of the 8 at distance h
         j = np.flatnonzero(sel & ~known)
         if len(j):
-            all_can = np.full((len(j), nb), 0xFF, np.uint8)
+            # the AND over the known neighbours of their lit and dark bits: a texel every known
+            # neighbour sees lit (or dark) is castable from each of them (lit and dark are subsets
+            # of castable), so the neighbours agree on it and could all see it
             all_lit = np.full((len(j), nb), 0xFF, np.uint8)
             all_dark = np.full((len(j), nb), 0xFF, np.uint8)
             present = np.zeros(len(j), np.int64)
@@ -381,11 +384,10 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
                 ok[ok] = known[k[ok]]
                 kk = k[ok]
                 present += ok
-                all_can[ok] &= can[kk]
                 all_lit[ok] &= lit[kk]
                 all_dark[ok] &= dark[kk]
             trust = present >= 4
-            agree = all_can & (all_lit | all_dark)
+            agree = all_lit | all_dark
             agree[~trust] = 0
             need = can[j] & ~agree
             inferred_lit = can[j] & agree & all_lit
