@@ -291,24 +291,12 @@ def _exported_parts_render_in_mitsuba_as_the_photo(scene: Path, solved: float):
     solve's relit error (the light at R = 8), and far below the render with Spot exported as its
     mean colour (what export wrote before)."""
     pytest.importorskip("mitsuba")
-    import tool_scenes as ts
-    from scipy.ndimage import binary_dilation, binary_erosion
-
-    from pipelines.io import images
-
     export = scene / "out" / "export"
     spot = next(p for p in json.loads((export / "export.json").read_text())["material"]["parts"] if p["name"] == "spot")
     assert spot["bitmap"] == "mitsuba/kd_spot.exr" and spot["exact"]
-    photo = images.read_image(scene / "image.exr").pixels
-    obj = images.read_mask(scene / "mask_object.png").astype(bool)
-    keep = images.read_mask(scene / "mask.png").astype(bool) & ~(binary_dilation(obj) & ~binary_erosion(obj))
-    norm = float((photo[keep] ** 2).sum())
 
     def bias(bsdf_files=None):
-        a, b = (ts.render_mitsuba_parts(scene, export, 16, bsdf_files, seed)[keep] for seed in (1, 2))
-        err2 = ((0.5 * (a + b) - photo[keep]) ** 2).sum() / norm
-        noise2 = ((a - b) ** 2).sum() / (4 * norm)  # of the two renders' mean
-        return float(np.sqrt(max(err2 - noise2, 0.0))), float(np.sqrt(noise2))
+        return _export_bias(scene, bsdf_files)
 
     textured, noise = bias()
     kd = next(p for p in json.loads((scene / "out" / "reflectance.json").read_text())["parts"] if p["name"] == "spot")["kd"]
@@ -321,6 +309,24 @@ def _exported_parts_render_in_mitsuba_as_the_photo(scene: Path, solved: float):
     assert textured < 1.3 * solved + 0.005
     assert plain > 4 * textured
 
+
+def _export_bias(scene: Path, bsdf_files=None) -> tuple[float, float]:
+    """Mitsuba's render of the scene's export (`bsdf_files`: some parts' BSDFs replaced) against the
+    photo, away from the object's silhouette: (the relative error beyond Mitsuba's noise, that
+    noise), from two renders of 16 spp with different seeds."""
+    import tool_scenes as ts
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    from pipelines.io import images
+
+    photo = images.read_image(scene / "image.exr").pixels
+    obj = images.read_mask(scene / "mask_object.png").astype(bool)
+    keep = images.read_mask(scene / "mask.png").astype(bool) & ~(binary_dilation(obj) & ~binary_erosion(obj))
+    norm = float((photo[keep] ** 2).sum())
+    a, b = (ts.render_mitsuba_parts(scene, scene / "out" / "export", 16, bsdf_files, seed)[keep] for seed in (1, 2))
+    err2 = ((0.5 * (a + b) - photo[keep]) ** 2).sum() / norm
+    noise2 = ((a - b) ** 2).sum() / (4 * norm)  # of the two renders' mean
+    return float(np.sqrt(max(err2 - noise2, 0.0))), float(np.sqrt(noise2))
 
 
 # -- a glossy part and a matte one (each part's own specular term) ----------------------------------
@@ -451,21 +457,10 @@ def _glossy_export_renders_as_the_photo(scene: Path, solved: float):
     noise, is about the solve's relit error; the same colours with the ground under Spot's coating
     (one specular model for every part) are far off: the parts' own BSDF types matter."""
     pytest.importorskip("mitsuba")
-    import tool_scenes as ts
-    from scipy.ndimage import binary_dilation, binary_erosion
-
-    from pipelines.io import images
-
     export = scene / "out" / "export"
-    photo = images.read_image(scene / "image.exr").pixels
-    obj = images.read_mask(scene / "mask_object.png").astype(bool)
-    keep = images.read_mask(scene / "mask.png").astype(bool) & ~(binary_dilation(obj) & ~binary_erosion(obj))
-    norm = float((photo[keep] ** 2).sum())
 
     def bias(bsdf_files=None):
-        a, b = (ts.render_mitsuba_parts(scene, export, 16, bsdf_files, seed)[keep] for seed in (1, 2))
-        err2 = ((0.5 * (a + b) - photo[keep]) ** 2).sum() / norm
-        return float(np.sqrt(max(err2 - ((a - b) ** 2).sum() / (4 * norm), 0.0)))
+        return _export_bias(scene, bsdf_files)[0]
 
     exported = bias()
     spot = (export / "mitsuba" / "bsdf_spot.xml").read_text()
