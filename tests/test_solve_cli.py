@@ -245,6 +245,40 @@ def test_coefficients_h5_matches_light_latlong(solved):
 
 # -- 4. the sun ----------------------------------------------------------------------------------
 
+def test_the_brightest_regions_centroid_follows_a_sun_between_texel_centres():
+    """`brightest`'s centroid on suns the cube map cannot centre: a 1 deg (sigma) Gaussian sun at a
+    random direction on a sky, each texel its average over the texel (8 x 8 sub-directions), R = 32
+    (~2.8 deg texels). The region of the texels at least half the peak's excess over the disc's
+    median, then a window of 1.5 texel widths around its centroid, finds the sun within 0.6 deg
+    (measured: median 0.06, worst 0.42 over 40 suns); the texels at least half as bright as the
+    peak alone (the report before) median 0.54, worst 1.20. A constant light falls back to the
+    half-as-bright region."""
+    from pipelines.controllers.solve import brightest
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(32)
+    d = cube.directions
+    sub = cube.subtexel_directions(8)
+    rng = np.random.default_rng(1)
+    new, old = [], []
+    for _ in range(40):
+        sun = rng.normal(size=3)
+        sun[2] = abs(sun[2]) + 0.3
+        sun /= np.linalg.norm(sun)
+        ang = np.degrees(np.arccos(np.clip(sub @ sun, -1, 1)))
+        lum = 0.2 + 40.0 * np.exp(-0.5 * ang**2).mean(axis=1)
+        light = lum[:, None] * np.array([1.0, 0.9, 0.8])
+        new.append(_angle_deg(brightest(light, cube)["centroid"]["direction"], sun))
+        i = int(np.argmax(lum))
+        half = ((d @ d[i]) >= np.cos(np.radians(20.0))) & (lum >= 0.5 * lum[i])
+        old.append(_angle_deg(((lum * cube.solid_angles)[half, None] * d[half]).sum(axis=0), sun))
+    print(f"median {np.median(new):.2f} worst {max(new):.2f}; half as bright: {np.median(old):.2f} {max(old):.2f}")
+    assert np.median(new) < 0.2 and max(new) < 0.6, new
+    assert np.median(new) < 0.5 * np.median(old) and max(new) < 0.5 * max(old)
+    flat = brightest(np.ones((cube.n_texels, 3)), cube)["centroid"]
+    assert "half as bright" in flat["note"] and flat["texels"] > 50
+
+
 def test_recovered_sun_direction(solved):
     from pipelines.light import cubemap
     from pipelines.io import images

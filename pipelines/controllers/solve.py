@@ -450,30 +450,77 @@ class SolveResult:
 
 
 BRIGHT_REGION_DEG = 20.0  # the brightest region: texels this close to the brightest one, at least half as bright
+BRIGHT_WINDOW_TEXELS = 1.5  # its centroid is then refined over the texels this many texel widths from it
+
+
+def _connected(d: np.ndarray, seed: int, candidates: np.ndarray, resolution: int) -> np.ndarray:
+    """(N,) bool: the candidate texels joined to `seed` through candidates that are neighbours (closer
+    than 1.5 face-centre texel widths: diagonals and across face edges included)."""
+    idx = np.flatnonzero(candidates | (np.arange(len(d)) == seed))
+    near = (d[idx] @ d[idx].T) >= np.cos(1.5 * 0.5 * np.pi / resolution)
+    reached = idx == seed
+    while True:
+        grown = reached | near[reached].any(axis=0)
+        if grown.sum() == reached.sum():
+            break
+        reached = grown
+    out = np.zeros(len(d), bool)
+    out[idx[reached]] = True
+    return out
 
 
 def brightest(light: np.ndarray, cube) -> dict:
-    """The brightest texel (ties: the lowest index) and the energy centroid of the region around
-    it (texels within BRIGHT_REGION_DEG of it and at least half its luminance): on a coarse solve
-    the texel is a corner of a constant block, the centroid its centre; for a sun, its direction."""
+    """The brightest texel (ties: the lowest index) and the energy centroid of the region around it.
+
+    The luminance's excess over the median of the BRIGHT_REGION_DEG disc around the brightest texel
+    (the sky around a sun) is the weight. The region: the texels of that disc at least half the
+    peak's excess, joined to it (a coarse solve's constant block: its centre). Its centroid is then
+    refined over every texel within BRIGHT_WINDOW_TEXELS texel widths of it (twice): a sun between
+    texel centres spreads over up to four texels (e.g. 0.26 / 0.11 / 0.11 / 0.11 of the light's
+    power), of which the half-as-bright region keeps the peak alone (1.8 deg off that sun; the
+    window, 0.2 deg), while a wider threshold reaches into a coarse light's blur around the sun.
+    When nothing stands above the median (a block covering most of the disc), the texels at least
+    half as bright as the peak, unrefined. A region wider than the window (a coarse light's constant
+    blocks, a sun wide enough for the texels to resolve) is its own centroid."""
     from ..light.cubemap import direction_to_spherical
 
     lum = np.asarray(light, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
     i = int(np.argmax(lum))
     d = cube.directions
     near = (d @ d[i]) >= np.cos(np.radians(BRIGHT_REGION_DEG))
-    region = near & (lum >= 0.5 * lum[i]) & (lum > 0)
+    excess = lum - np.median(lum[near])
     power = lum * cube.solid_angles
-    centre = (power[region, None] * d[region]).sum(axis=0)
-    centre = centre / np.linalg.norm(centre) if np.linalg.norm(centre) > 0 else d[i]
+
+    def centroid(sel, weight):
+        v = (weight[sel, None] * d[sel]).sum(axis=0)
+        return v / np.linalg.norm(v) if np.linalg.norm(v) > 0 else d[i]
+
+    if excess[i] > 0:
+        weight = np.maximum(excess, 0.0) * cube.solid_angles
+        region = _connected(d, i, near & (excess >= 0.5 * excess[i]), cube.resolution)
+        centre = centroid(region, weight)
+        cos_w = np.cos(BRIGHT_WINDOW_TEXELS * 0.5 * np.pi / cube.resolution)
+        # (a region wider than the window is a coarse light's blocks, or a sun the texels resolve: kept)
+        for _ in range(2 if float((d[region] @ centre).min()) >= cos_w else 0):
+            region = near & ((d @ centre) >= cos_w) & (excess > 0)
+            if not region.any():
+                break
+            centre = centroid(region, weight)
+        how = (f"energy centroid of the brightest region: the texels within {BRIGHT_REGION_DEG:g} deg of the brightest one "
+               "at least half its excess over that disc's median, joined to it, then those within "
+               f"{BRIGHT_WINDOW_TEXELS:g} texel widths of their centroid (twice), weighted by the excess")
+    else:
+        region = near & (lum >= 0.5 * lum[i]) & (lum > 0)
+        centre = centroid(region, power)
+        how = (f"energy centroid of the texels within {BRIGHT_REGION_DEG:g} deg of the brightest one and at least "
+               "half as bright (nothing stands above that disc's median)")
     theta, phi = direction_to_spherical(np.stack([d[i], centre]))
     return {"texel": i, "direction": d[i].tolist(), "theta_deg": float(np.degrees(theta[0])),
             "phi_deg": float(np.degrees(phi[0]) % 360.0), "radiance_rgb": np.asarray(light)[i].tolist(),
             "centroid": {"direction": centre.tolist(), "theta_deg": float(np.degrees(theta[1])),
                          "phi_deg": float(np.degrees(phi[1]) % 360.0), "texels": int(region.sum()),
                          "power_share": float(power[region].sum() / max(power.sum(), 1e-300)),
-                         "note": f"energy centroid of the texels within {BRIGHT_REGION_DEG:g} deg of the brightest "
-                                 "one and at least half as bright"}}
+                         "note": how}}
 
 
 # -- the controller -----------------------------------------------------------------------------
