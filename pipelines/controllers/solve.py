@@ -501,14 +501,16 @@ def brightest(light: np.ndarray, cube) -> dict:
         centre = centroid(region, weight)
         cos_w = np.cos(BRIGHT_WINDOW_TEXELS * 0.5 * np.pi / cube.resolution)
         # (a region wider than the window is a coarse light's blocks, or a sun the texels resolve: kept)
-        for _ in range(2 if float((d[region] @ centre).min()) >= cos_w else 0):
+        refine = float((d[region] @ centre).min()) >= cos_w
+        for _ in range(2 if refine else 0):
             region = near & ((d @ centre) >= cos_w) & (excess > 0)
             if not region.any():
                 break
             centre = centroid(region, weight)
         how = (f"energy centroid of the brightest region: the texels within {BRIGHT_REGION_DEG:g} deg of the brightest one "
-               "at least half its excess over that disc's median, joined to it, then those within "
-               f"{BRIGHT_WINDOW_TEXELS:g} texel widths of their centroid (twice), weighted by the excess")
+               "at least half its excess over that disc's median, joined to it"
+               + (f", then those within {BRIGHT_WINDOW_TEXELS:g} texel widths of their centroid (twice)" if refine else
+                  f" (wider than {BRIGHT_WINDOW_TEXELS:g} texel widths: not refined)") + ", weighted by the excess")
     else:
         region = near & (lum >= 0.5 * lum[i]) & (lum > 0)
         centre = centroid(region, power)
