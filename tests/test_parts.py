@@ -113,6 +113,43 @@ def test_fit_scales_recovers_part_ratio():
     assert new[0] == pytest.approx(true[0], rel=1e-9)
 
 
+def test_fit_scales_recovers_each_glossy_parts_specular_weight():
+    """Under a specular material the closed-form step also fits each glossy part's specular weight
+    (the factor on the material's ks) with its colour: exact on noise-free rows, the part whose lobe
+    carries the most signal keeping its weight (the material's ks is its own), and a part whose rows
+    see no highlight keeping the weight it had (they cannot tell it)."""
+    from pipelines.model.parts import Part, PixelAlbedo, SceneParts, fit_scales
+
+    rng = np.random.default_rng(3)
+    n = 900
+    part = np.arange(n) % 3  # 0 reference (the strongest lobe), 1 a weaker coating, 2 no highlight in view
+    base = rng.uniform(0.3, 1.0, (n, 3))
+    diffuse = rng.uniform(0.1, 1.0, (n, 3))
+    lobe = rng.uniform(0.0, 2.0, (n, 1)) * np.array([1.0, 0.9, 0.8])
+    lobe[part == 2] = 0.0
+    true = np.array([[1.0, 1.0, 1.0], [0.5, 0.7, 0.9], [1.2, 0.8, 0.6]])
+    ks_true = np.array([1.0, 0.3, 5.0])
+    photo = base * true[part] * diffuse + ks_true[part][:, None] * lobe
+    sp = SceneParts([Part("spot", (1, 1, 1), "", fit="reference"), Part("ground", (1, 1, 1), ""),
+                     Part("table", (1, 1, 1), "")], part, None, None, 0, [])
+    a = PixelAlbedo(base, part, np.ones((3, 3)), sp)
+    scales, ks = fit_scales(a, np.arange(n), np.ones(n), diffuse, lobe, photo, ks=True)
+    assert scales == pytest.approx(true, rel=1e-9)
+    assert ks == pytest.approx([1.0, 0.3, 1.0], rel=1e-9)
+    # the step is bounded (the light moves with it): from a weight far off, a factor 4 at most
+    a.ks_scales = np.array([1.0, 0.01, 1.0])
+    _, ks = fit_scales(a, np.arange(n), np.ones(n), diffuse, lobe * a.ks_scales[part][:, None], photo, ks=True)
+    assert ks[1] == pytest.approx(0.04)
+    # a part whose lobe drowns in its rows' noise keeps its weight; a matte part has none
+    a.ks_scales = None
+    faint = photo + (0.001 - ks_true[part][:, None]) * lobe * (part == 1)[:, None]
+    faint = faint + rng.normal(0, 0.3, photo.shape) * (part == 1)[:, None]
+    _, ks = fit_scales(a, np.arange(n), np.ones(n), diffuse, lobe, faint, ks=True)
+    assert ks[1] == 1.0
+    a.glossy = np.array([True, False, True])
+    assert a.specular_weight()[part == 1].max() == 0 and a.specular_weight()[part == 0].min() == 1
+
+
 # -- errors ---------------------------------------------------------------------------------------
 def _error_line(result) -> str:
     lines = [ln for ln in result.output.splitlines() if ln.startswith("Error:")]

@@ -191,6 +191,30 @@ def test_part_factors_change_without_a_pass_over_the_rows(mitsuba_scene, precisi
         np.testing.assert_allclose(moved.predict(np.ones((vis.cube.n_texels, 3))) if s is s2 else
                                    grouped.predict(np.ones((vis.cube.n_texels, 3))),
                                    plain.predict(np.ones((vis.cube.n_texels, 3))), rtol=1e-6)
+    if not material.specular:
+        return
+    # each part's own specular weight (`group_ks`) from the same kept pieces: the system of rows whose
+    # lobe is scaled by their part's weight (the transport rows built so, `set_specular`: the float32
+    # rows scaled, hence 1e-6)
+    g = np.array([0.3, 1.0, 2.5])
+    rtol = max(rtol, 1e-6)
+    with_ks = grouped.with_scales(s2, g)
+    light = rng.uniform(0.0, 1.0, (vis.cube.n_texels, 3))
+    scaled = TransportRows(vis, rows)
+    scaled.set_specular(g[group])
+    plain = scaled.part(material, photo, weights, 5000, albedo=base * s2[group])
+    plain = plain if precision == "double" else plain.head(len(rows), "single")
+    for t in trees:
+        _assert_same_system(with_ks.project_tree(t), plain.project_tree(t), rtol)
+    np.testing.assert_allclose(with_ks.predict(light), plain.predict(light), rtol=1e-5)
+    np.testing.assert_allclose(with_ks.gradient(light), plain.gradient(light), rtol=1e-4, atol=1e-6)
+    # and a system whose rows carry the weights per row (not kept per part) agrees as well
+    per_row = tr.part(material, photo, weights, 5000, albedo=base, group=group, scales=s2, split_specular=False,
+                      ks_scales=g)
+    per_row = per_row if precision == "double" else per_row.head(len(rows), "single")
+    for t in trees:
+        _assert_same_system(per_row.project_tree(t), plain.project_tree(t), rtol)
+    assert not np.allclose(with_ks.project_tree(trees[-1]).h, grouped.with_scales(s2).project_tree(trees[-1]).h)
 
 
 @pytest.mark.parametrize("material", [

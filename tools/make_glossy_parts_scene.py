@@ -34,6 +34,7 @@ from pipelines.io import exports, images  # noqa: E402
 
 SOURCE = "spot_textured_sun"
 NAME = "spot_glossy_sun"
+GROUND_COATED = "spot_glossy_ground_sun"
 ALPHA, DISTRIBUTION, INT_IOR, EXT_IOR = 0.15, "ggx", 1.49, 1.000277
 GROUND = (0.35, 0.45, 0.6)
 ENV_SUPERSAMPLE = 16
@@ -41,7 +42,7 @@ NOISE_REL = 0.005
 SEED = 32400
 
 
-def bsdf_files(folder: Path, texture: Path) -> dict:
+def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None) -> dict:
     spot = folder / "bsdf_spot.xml"
     spot.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
     <string name="distribution" value="{DISTRIBUTION}"/>
@@ -58,8 +59,20 @@ def bsdf_files(folder: Path, texture: Path) -> dict:
 </bsdf>
 """)
     ground = folder / "bsdf_ground.xml"
-    ground.write_text(f"""<bsdf type="diffuse" version="3.0.0">
+    if ground_ks is None:
+        ground.write_text(f"""<bsdf type="diffuse" version="3.0.0">
     <rgb name="reflectance" value="{GROUND[0]} {GROUND[1]} {GROUND[2]}"/>
+</bsdf>
+""")
+    else:  # the ground under the same coating at a weaker specular weight (--ground-ks)
+        ground.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
+    <string name="distribution" value="{DISTRIBUTION}"/>
+    <float name="alpha" value="{ALPHA}"/>
+    <float name="int_ior" value="{INT_IOR}"/>
+    <float name="ext_ior" value="{EXT_IOR}"/>
+    <boolean name="nonlinear" value="false"/>
+    <rgb name="diffuse_reflectance" value="{GROUND[0]} {GROUND[1]} {GROUND[2]}"/>
+    <float name="specular_reflectance" value="{ground_ks}"/>
 </bsdf>
 """)
     return {"spot": spot, "ground": ground}
@@ -83,9 +96,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spp", type=int, default=2048)
     parser.add_argument("--dest", type=Path, default=HERE / "tests" / "data" / "scenes")
+    parser.add_argument("--ground-ks", type=float, default=None,
+                        help="the ground under Spot's coating too, at this specular_reflectance (scene "
+                             f"{GROUND_COATED}: two glossy parts of different specular weight)")
     args = parser.parse_args()
+    name = NAME if args.ground_ks is None else GROUND_COATED
     src = HERE / "tests" / "data" / "scenes" / SOURCE
-    dst = args.dest / NAME
+    dst = args.dest / name
     if dst.exists():
         shutil.rmtree(dst)
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(".wavelight", "out", "image.png"))
@@ -99,10 +116,10 @@ def main() -> int:
         big = np.repeat(np.repeat(light, ENV_SUPERSAMPLE, axis=0), ENV_SUPERSAMPLE, axis=1)
         images.write_exr(work / "mitsuba" / "light.exr", exports.to_mitsuba(big))
         (work / "mitsuba" / "emitter.xml").write_text(exports.mitsuba_xml("light.exr"))
-        bsdfs = bsdf_files(work, src / "spot_texture.png")
+        bsdfs = bsdf_files(work, src / "spot_texture.png", args.ground_ks)
         views = [("main", src, dst, dst / "truth")]
         views += [(p.name, p, dst / "views" / p.name, None) for p in sorted((src / "views").iterdir())]
-        for k, (name, folder, out, truth) in enumerate(views):
+        for k, (view_name, folder, out, truth) in enumerate(views):
             camera = folder / "camera.json" if (folder / "camera.json").is_file() else src / "camera.json"
             clean = render_view(src, camera, folder / "pose.json", work, bsdfs, args.spp, SEED + k).astype(np.float32)
             mask = images.read_mask(folder / "mask.png")
@@ -111,8 +128,8 @@ def main() -> int:
             images.write_exr(out / "image.exr", noisy)
             if truth is not None:
                 images.write_exr(truth / "image_clean.exr", clean)
-            noise[name] = sigma
-            print(f"  {name}: {time.time() - t0:.0f} s, noise sigma {sigma:.3g}")
+            noise[view_name] = sigma
+            print(f"  {view_name}: {time.time() - t0:.0f} s, noise sigma {sigma:.3g}")
         novel = src / "truth" / "novel_view"
         clean = render_view(src, novel / "camera.json", novel / "pose.json", work, bsdfs, args.spp, SEED + 50)
         images.write_exr(dst / "truth" / "novel_view" / "image.exr", clean.astype(np.float32))
@@ -124,9 +141,14 @@ def main() -> int:
         "kd_mean": material["parts"]["spot"]["kd_mean"],
         "formula": "Mitsuba roughplastic: specular = microfacet F D G / (4 cos_i cos_o), GGX, Smith G; diffuse = "
                    "texture(uv) / (1 - Fdr_int) / eta^2 / pi * (1 - F(cos_i)) (1 - F(cos_o)) (nonlinear=false)"}
+    if args.ground_ks is not None:
+        material["parts"]["ground"] = {
+            "type": "roughplastic", "distribution": DISTRIBUTION, "alpha": ALPHA, "int_ior": INT_IOR,
+            "ext_ior": EXT_IOR, "nonlinear": False, "diffuse_reflectance": list(GROUND),
+            "specular_reflectance": args.ground_ks, "kd_mean": material["parts"]["ground"].get("kd_mean", list(GROUND))}
     (dst / "truth" / "material.json").write_text(json.dumps(material, indent=1) + "\n")
     params = json.loads((src / "truth" / "scene_params.json").read_text())
-    params.update(name=NAME, set="glossy parts", material=material, mitsuba={"variant": "scalar_rgb"},
+    params.update(name=name, set="glossy parts", material=material, mitsuba={"variant": "scalar_rgb"},
                   render={"integrator": "direct (Mitsuba's default: MIS of emitter and BSDF samples)",
                           "sampler": "independent", "spp": args.spp, "noise_sigma": noise, "noise_rel": NOISE_REL,
                           "made_by": "tools/make_glossy_parts_scene.py from " + SOURCE,
@@ -134,14 +156,17 @@ def main() -> int:
     params.pop("verification", None)
     (dst / "truth" / "scene_params.json").write_text(json.dumps(params, indent=1) + "\n")
     (dst / "README.txt").write_text(
-        f"Scene {NAME}: {SOURCE}'s mesh (mesh.obj, mesh.mtl: parts spot and ground), cameras, poses, masks and\n"
+        f"Scene {name}: {SOURCE}'s mesh (mesh.obj, mesh.mtl: parts spot and ground), cameras, poses, masks and\n"
         f"correspondences (main photo and views/left, views/right), under the same light (truth/env_latlong.exr),\n"
         f"with Spot under a glossy coating: Mitsuba roughplastic ({DISTRIBUTION}, alpha {ALPHA}, int_ior {INT_IOR}),\n"
-        f"spot_texture.png (sRGB) its diffuse base; the ground Mitsuba diffuse {list(GROUND)}. Rendered by\n"
+        f"spot_texture.png (sRGB) its diffuse base; the ground " + (
+            f"Mitsuba diffuse {list(GROUND)}" if args.ground_ks is None else
+            f"under the same coating, specular_reflectance {args.ground_ks}, its diffuse base {list(GROUND)}") +
+        ". Rendered by\n"
         f"tools/make_glossy_parts_scene.py (Mitsuba 3 scalar_rgb, direct, {args.spp} spp) + N(0, 0.5 % of the mean\n"
         f"over mask.png). truth/: image_clean.exr (main), novel_view/image.exr (clean), material.json, scene_params.json.\n"
         "Nothing in the scene folder says which part is glossy (mesh.mtl is the diffuse scene's).\n")
-    print(f"{NAME}: written to {dst} in {time.time() - t0:.0f} s")
+    print(f"{name}: written to {dst} in {time.time() - t0:.0f} s")
     return 0
 
 

@@ -219,7 +219,8 @@ class _Systems:
         # several parts: the rows keep each part's known albedo and the factors apart (`RowsPart.group`),
         # so that a Lambertian system serves other factors without a pass over the rows (`rows.with_scales`)
         # (a specular system's pieces per part pay off only for a round's system, re-solved under new factors)
-        grouped = {} if a is None else {"scales": a.scales, "split_specular": round_rows is not None}
+        grouped = {} if a is None else {"scales": a.scales, "split_specular": round_rows is not None,
+                                        "ks_scales": a.ks_scales}
         fit = self.fit_rows.part(material, self.targets[fs.rows], self.fit_w, fs.candidates, round_rows,
                                  None if a is None else a.base[fs.rows],
                                  group=None if a is None else a.part[fs.rows], **grouped)
@@ -236,8 +237,8 @@ class _Systems:
         """Which parts have the specular term ((parts,) bool; `parts.glossy_parts`): the transport rows
         of matte parts lose the lobe (and a coating), and the reflectance fits leave them out."""
         self.albedo.glossy, self.albedo.glossy_source = glossy, sources
-        if not self.options.exact:
-            w = self.specular_weight()
+        if not self.options.exact:  # (the rows carry the lobe at weight 1: a part's own weight is its group's)
+            w = self.albedo.glossy_weight()
             self.fit_rows.set_specular(None if w is None else w[self.fit_sample.rows])
             self.held_rows.set_specular(None if w is None else w[self.held_sample.rows])
 
@@ -280,9 +281,10 @@ class _Systems:
         self.fit_w = self.fit_sample.weights * weights[self.fit_sample.rows]
         self.held_w = self.held_sample.weights * weights[self.held_sample.rows]
 
-    def part_scales(self, light: np.ndarray, material: Material) -> np.ndarray:
+    def part_scales(self, light: np.ndarray, material: Material):
         """The per-part albedo scales that fit the photo best under `light` (`parts.fit_scales`), over
-        the rows the light is fitted to (the fit sample; on the exact route every fit pixel)."""
+        the rows the light is fitted to (the fit sample; on the exact route every fit pixel). Under a
+        specular material, with the glossy parts' specular weights: (scales, ks_scales)."""
         from ..model.parts import fit_scales
         from ..model.render import render
 
@@ -301,7 +303,9 @@ class _Systems:
             spec = None
             if material.specular:
                 spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
-        return fit_scales(self.albedo, rows, weights, diffuse, spec, self.targets[rows])
+                if self.albedo.ks_scales is not None:  # (the rows carry the lobe at weight 1)
+                    spec *= self.albedo.ks_scales[self.albedo.part[rows]][:, None]
+        return fit_scales(self.albedo, rows, weights, diffuse, spec, self.targets[rows], ks=material.specular)
 
     def part_leaf_systems(self, tree, material: Material, system=None) -> list:
         """Per part, the leaf-space normal equations of its fit rows (G (3, k, k), h (k, 3), bb (3,))
@@ -704,7 +708,15 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         first = sol
         for k in range(PART_ROUNDS):
             new = systems.part_scales(sol.light, m)
-            change = float(np.max(np.abs(new / albedo.scales - 1)))
+            if m.specular:  # (and the glossy parts' specular weights: `parts.fit_scales`)
+                new, ks_new = new
+                before = albedo.part_ks()
+                albedo.ks_scales = None if np.all(ks_new == 1) else ks_new
+                after = albedo.part_ks()
+                ks_change = float(np.max(np.abs(after - before) / np.maximum(before, 1e-12)))
+            else:
+                ks_change = 0.0
+            change = max(float(np.max(np.abs(new / albedo.scales - 1))), ks_change)
             history.append(np.log(new))
             if len(history) >= 3:
                 d_prev, d = history[-2] - history[-3], history[-1] - history[-2]
@@ -723,7 +735,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             elif k == 0:
                 ne = systems.system(m) if not m.specular else systems.system(m, ROUND_ROWS)
             else:  # the same rows under the new factors: their tree systems are kept per part
-                ne = with_scales(ne, albedo.scales)
+                ne = with_scales(ne, albedo.scales, albedo.ks_scales)
             quick = bases.refit(ne, vis.cube, first)
             if quick is None:
                 sol, ne = solve_light_only(m)
@@ -732,7 +744,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         return _parts_done(sol, ne, k)
 
     def _parts_done(sol, ne, k):
-        part_scales[id(sol)] = albedo.scales.copy()
+        part_scales[id(sol)] = (albedo.scales.copy(), None if albedo.ks_scales is None else albedo.ks_scales.copy())
         names = albedo.parts.names
         progress.note(f"part albedo after {k + 1} round(s) (relative to {names[albedo.parts.reference]}): " + ", ".join(
             f"{n} {' '.join(f'{v:.3g}' for v in albedo.scales[i])}" for i, n in enumerate(names)))
@@ -829,16 +841,18 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                    reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
                                    rows=lm_rows, probe_rows=probe_rows,
                                    plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
-                                   note=progress.note, albedo=current_albedo, per_part=decide_glossy)
+                                   note=progress.note, albedo=current_albedo, per_part=decide_glossy,
+                                   lobe=systems.specular_weight)
             else:
                 result = rf.alternate(vis, values, start, round_light, fit_use(), held, material.kd,
-                                      reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo)
+                                      reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo,
+                                      lobe=systems.specular_weight)
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None
     material, sol, system = result.material, result.solution, result.context
     if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
-        albedo.scales = part_scales.get(id(sol), albedo.scales)
+        albedo.scales, albedo.ks_scales = part_scales.get(id(sol), (albedo.scales, albedo.ks_scales))
 
     def refine_chosen(material, sol, system):
         if not options.exact and material.specular and sol is not refined.get("solution"):
@@ -914,7 +928,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             systems.robust(w, t)
             if k == 0 and material.specular and reflectance.fits:
                 again = rf.alternate(vis, t, material, round_light, counted, held & ~bound, kd_reference,
-                                     ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo)
+                                     ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo,
+                                     lobe=systems.specular_weight)
                 material = again.material
                 sol, system = refine_chosen(material, again.solution, again.context)
                 n0 = len(result.rounds)
@@ -929,7 +944,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             else:
                 sol, system = solve_light(material)
             if albedo is not None:
-                albedo.scales = part_scales.get(id(sol), albedo.scales)
+                albedo.scales, albedo.ks_scales = part_scales.get(id(sol), (albedo.scales, albedo.ks_scales))
             sol, system, recast = cast_bright(sol, system, recast)
             relit = relit_view(sol)
         robust_info.update(robust_counts(w, counted, bound, clipped, values, relit, usable))

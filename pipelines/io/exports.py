@@ -696,8 +696,13 @@ def part_exports(material, parts: list[dict], scene_parts=None) -> list[PartExpo
             kd, pixels, exact = tuple(float(v) for v in p["scale"]), tex.levels[0], True
         else:
             kd, pixels, exact = tuple(float(v) for v in p["kd"]), None, not p.get("textured")
-        # (a matte part of a glossy scene, reflectance.json's "specular": false: Lambertian, its colour)
-        m = replace(material, kd=kd) if p.get("specular", True) else type(material)(kd=kd)
+        # (a matte part of a glossy scene, reflectance.json's "specular": false: Lambertian, its colour;
+        # a glossy part its own ks: the material's x its specular weight)
+        if p.get("specular", True):
+            weight = float(p.get("specular_weight", 1.0))
+            m = replace(material, kd=kd, ks=tuple(float(v) * weight for v in material.ks))
+        else:
+            m = type(material)(kd=kd)
         out.append(PartExport(p["name"], re.sub(r"[^A-Za-z0-9_.-]", "_", p["name"]), m,
                               pixels, p.get("texture") if tex is not None else None, exact))
     return out

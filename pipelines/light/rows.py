@@ -157,6 +157,8 @@ class RowsPart:
     # kept per part, so that it serves any factors: G_c = sum_q s_qc^2 G_qc, h_c = sum_q s_qc h_qc
     group: np.ndarray | None = None
     group_scales: np.ndarray | None = None
+    # and each part's specular weight (parts,): row j's ks is ks x group_ks[group[j]] (None: 1 for all)
+    group_ks: np.ndarray | None = None
     # with a specular term the pieces cost ~3x one projection (diffuse, cross and specular products):
     # worth it for a system re-solved under many factors (a specular round's), not for one explored once
     split_specular: bool = True
@@ -173,14 +175,33 @@ class RowsPart:
             return kd
         return kd * np.asarray(self.group_scales, np.float64)[self.group]
 
-    def with_scales(self, scales: np.ndarray) -> "RowsPart":
-        """The same rows with other part factors (`group_scales`): the tree systems kept per part
-        serve it without a pass over the rows (the memo is shared)."""
+    @cached_property
+    def ks_eff(self) -> np.ndarray:
+        """The ks the rows render with: (C,), or (n, C) per row (the parts' specular weights applied)."""
+        ks = np.asarray(self.ks, np.float64)
+        if self.group is None or self.group_ks is None:
+            return ks
+        return ks[None, :] * np.asarray(self.group_ks, np.float64)[self.group][:, None]
+
+    def _ks(self, c: int) -> np.ndarray:
+        """Channel c's ks: a scalar, or (n, 1) per row."""
+        ks = self.ks_eff
+        return ks[..., c][:, None] if ks.ndim == 2 else np.asarray(ks[c])
+
+    @property
+    def _ks_rows(self) -> np.ndarray:
+        ks = self.ks_eff
+        return ks if ks.ndim == 2 else ks[None, :]
+
+    def with_scales(self, scales: np.ndarray, ks_scales: np.ndarray | None = None) -> "RowsPart":
+        """The same rows with other part factors (`group_scales`, and `group_ks` when given): the tree
+        systems kept per part serve it without a pass over the rows (the memo is shared)."""
         from dataclasses import replace
 
         if self.group is None:
             raise ValueError("with_scales needs rows grouped by part")
-        return replace(self, group_scales=np.array(scales, np.float64), memo=self.memo)
+        ks = self.group_ks if ks_scales is None else np.array(ks_scales, np.float64)
+        return replace(self, group_scales=np.array(scales, np.float64), group_ks=ks, memo=self.memo)
 
     @cached_property
     def bb(self) -> np.ndarray:
@@ -206,7 +227,7 @@ class RowsPart:
         A = A_D.astype(dtype)  # a copy (A_D float32): scaled in place, no second temporary
         A *= sw * self._kd(c).astype(dtype)
         if A_S is not None and self.ks[c] != 0:
-            A += A_S.astype(dtype) * (sw * dtype(self.ks[c]))
+            A += A_S.astype(dtype) * (sw * self._ks(c).astype(dtype))
         return A
 
     def _system(self, A_D: np.ndarray, A_S: np.ndarray | None) -> SystemPart:
@@ -249,7 +270,8 @@ class RowsPart:
     def _tree_key(self, tree: HaarTree) -> tuple:
         key = (tree.tile_sizes, tree.subdivided)
         if self.group is not None and not self._per_group:  # (kept for these factors only)
-            key += (np.asarray(self.group_scales, np.float64).tobytes(),)
+            key += (np.asarray(self.group_scales, np.float64).tobytes(),
+                    None if self.group_ks is None else np.asarray(self.group_ks, np.float64).tobytes())
         return key
 
     def _tree_entry(self, tree: HaarTree):
@@ -309,10 +331,10 @@ class RowsPart:
         if not isinstance(entry, dict):
             return entry
         s = np.asarray(self.group_scales, np.float64)
-        ks = np.asarray(self.ks, np.float64)
         C = s.shape[1]
         G, h = 0.0, 0.0
         for q, e in entry.items():
+            ks = np.asarray(self.ks, np.float64) * (1.0 if self.group_ks is None else float(self.group_ks[q]))
             Gq = s[q][:, None, None] ** 2 * e["DD"]
             hq = e["hD"] * s[q][None, :]
             if e["X"] is not None:
@@ -353,7 +375,7 @@ class RowsPart:
             return RowsPart(Pyramid(np.ascontiguousarray(D), self.D.tile_sizes),
                             None if S is None else Pyramid(np.ascontiguousarray(S), self.D.tile_sizes),
                             kd, self.ks, b, w, 0, self.precision, group=group, group_scales=self.group_scales,
-                            split_specular=self.split_specular)
+                            split_specular=self.split_specular, group_ks=self.group_ks)
 
         def fix(system, a, c):
             return SystemPart(system.G + a.G - c.G, system.h + a.h - c.h, system.bb, system.n_pixels,
@@ -382,7 +404,7 @@ class RowsPart:
         return RowsPart(self.D.head(n), None if self.S is None else self.S.head(n), kd, self.ks, self.b[:n],
                         self.w[:n] * factor, self.n_pixels, precision or self.precision,
                         group=None if self.group is None else self.group[:n], group_scales=self.group_scales,
-                        split_specular=self.split_specular)
+                        split_specular=self.split_specular, group_ks=self.group_ks)
 
     def project(self, P) -> SystemPart:
         """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
@@ -407,7 +429,7 @@ class RowsPart:
         D = self.D.rows[:, sub]
         out = self._kd_rows * (D @ L[sub].astype(np.float32)).astype(np.float64)
         if self.S is not None:
-            out += np.asarray(self.ks)[None, :] * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
+            out += self._ks_rows * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
         return out
 
     def residual(self, light: np.ndarray) -> np.ndarray:
@@ -426,9 +448,12 @@ class RowsPart:
             out = (self.D.rows.T @ (kd * r).astype(np.float32)).astype(np.float64)
         else:
             out = kd[None, :] * (self.D.rows.T @ r.astype(np.float32)).astype(np.float64)
-        r = r.astype(np.float32)
         if self.S is not None:
-            out += np.asarray(self.ks)[None, :] * (self.S.rows.T @ r).astype(np.float64)
+            ks = self.ks_eff
+            if ks.ndim == 2:
+                out += (self.S.rows.T @ (ks * r).astype(np.float32)).astype(np.float64)
+            else:
+                out += ks[None, :] * (self.S.rows.T @ r.astype(np.float32)).astype(np.float64)
         return out
 
     def channel_diag(self) -> np.ndarray:
@@ -453,7 +478,8 @@ class RowsPart:
                     kd_c = self._kd(c)
                     np.multiply(self.D.rows[sl], (kd_c[sl] if kd_c.ndim else kd_c).astype(np.float32), out=t)
                     if self.S is not None and self.ks[c] != 0:
-                        t += self.S.rows[sl] * np.float32(self.ks[c])
+                        ks_c = self._ks(c)
+                        t += self.S.rows[sl] * (ks_c[sl] if ks_c.ndim else ks_c).astype(np.float32)
                     t *= t
                     acc[c] += w[sl] @ t
             partial[mine[0] if mine else -1] = acc
@@ -521,16 +547,18 @@ class UnionPart:
     def combine(self, other):
         return UnionPart(self.parts + (other,))
 
-    def with_scales(self, scales):
-        return UnionPart(tuple(p.with_scales(scales) for p in self.parts))
+    def with_scales(self, scales, ks_scales=None):
+        return UnionPart(tuple(p.with_scales(scales, ks_scales) for p in self.parts))
 
 
-def with_scales(system, scales: np.ndarray):
-    """A sampled `LightSystem` of rows grouped by part with other part factors (its tree systems kept)."""
+def with_scales(system, scales: np.ndarray, ks_scales: np.ndarray | None = None):
+    """A sampled `LightSystem` of rows grouped by part with other part factors (and specular weights,
+    `RowsPart.group_ks`) (its tree systems kept)."""
     from .system import LightSystem
 
-    return LightSystem(system.fit.with_scales(scales), system.held_out.with_scales(scales), system.seconds,
-                       None if system.explore is None else system.explore.with_scales(scales))
+    return LightSystem(system.fit.with_scales(scales, ks_scales), system.held_out.with_scales(scales, ks_scales),
+                       system.seconds,
+                       None if system.explore is None else system.explore.with_scales(scales, ks_scales))
 
 
 class TransportRows:
@@ -557,10 +585,11 @@ class TransportRows:
 
     def set_specular(self, weight: np.ndarray | None) -> None:
         """Which rows have the specular term ((rows,) 1 or 0; None: all): the rows of matte parts get
-        no lobe and, under `plastic`, no coating (`render.matte_rows`). The kept specular and coated
-        transports are dropped (built again under the new weights)."""
+        no lobe and, under `plastic`, no coating (`render.matte_rows`; another weight multiplies the
+        row's lobe). The kept specular and coated transports are dropped (built again under the new
+        weights)."""
         w = None if weight is None else np.asarray(weight, np.float32)
-        if w is not None and w.all():
+        if w is not None and np.all(w == 1):
             w = None
         if w is None and self.specular_weight is None:
             return
@@ -677,7 +706,8 @@ class TransportRows:
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
              n_rows: int | None = None, albedo: np.ndarray | None = None, group: np.ndarray | None = None,
-             scales: np.ndarray | None = None, split_specular: bool = True) -> RowsPart:
+             scales: np.ndarray | None = None, split_specular: bool = True,
+             ks_scales: np.ndarray | None = None) -> RowsPart:
         """The rows' system under `material` against `photo` ((n, C) values of these rows); with
         `n_rows`, of the first n_rows rows only, standing for the same pixels (weights scaled up, as
         `RowsPart.head`): a specular round's smaller system builds S for those rows alone. `albedo`:
@@ -696,4 +726,4 @@ class TransportRows:
                         np.asarray(photo, np.float64)[:n], w[:n] * (w.sum() / max(w[:n].sum(), 1e-300)), int(n_pixels),
                         group=None if group is None else np.asarray(group, np.int64)[:n],
                         group_scales=None if scales is None else np.array(scales, np.float64),
-                        split_specular=split_specular)
+                        split_specular=split_specular, group_ks=None if ks_scales is None else np.array(ks_scales, float))

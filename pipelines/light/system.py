@@ -175,7 +175,8 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     held_out : (P,) bool, pixels kept out of the fit for model selection; default none.
     threads : worker threads (default: the machine's cores, at most 4).
     albedo : (P, 3) per-pixel relative albedo multiplying kd (several parts, textures); None: uniform.
-    specular : (P,) 0 for pixels of matte parts (no lobe: `model.render.transport`); None: all have it.
+    specular : (P,) 0 for pixels of matte parts (no lobe: `model.render.transport`), else the factor on
+        ks (the part's specular weight); None: all have it at 1.
     """
     t0 = time.perf_counter()
     b = np.asarray(photo, dtype=np.float64)

@@ -388,18 +388,34 @@ class PixelAlbedo:
     parts: SceneParts
     glossy: np.ndarray | None = None  # (parts,) bool: which parts have the specular term (None: all)
     glossy_source: list | None = None  # per part, how that was decided
+    # (parts,) each glossy part's specular weight: its ks is the material's x this (`fit_scales`); None: 1
+    ks_scales: np.ndarray | None = None
 
     def values(self, rows=None) -> np.ndarray:
         sl = slice(None) if rows is None else rows
         return self.base[sl] * self.scales[self.part[sl]]
 
-    def specular_weight(self, rows=None) -> np.ndarray | None:
-        """(P,) 1 for the pixels of glossy parts, 0 for matte ones (`render.transport`'s `specular`);
-        None when every part has the specular term."""
+    def part_ks(self) -> np.ndarray:
+        """(parts,) the factor on the material's ks of each part: 0 for matte parts, else its weight."""
+        g = np.ones(len(self.parts.parts)) if self.glossy is None else np.asarray(self.glossy, float)
+        return g if self.ks_scales is None else g * self.ks_scales
+
+    def glossy_weight(self, rows=None) -> np.ndarray | None:
+        """(P,) 1 for the pixels of glossy parts, 0 for matte ones (which transport rows carry the
+        lobe); None when every part has the specular term."""
         if self.glossy is None or np.all(self.glossy):
             return None
         sl = slice(None) if rows is None else rows
         return self.glossy[self.part[sl]].astype(np.float32)
+
+    def specular_weight(self, rows=None) -> np.ndarray | None:
+        """(P,) each pixel's factor on ks (`render.transport`'s `specular`): 0 for the pixels of matte
+        parts, its part's specular weight for glossy ones; None when every part has the term at 1."""
+        g = self.part_ks()
+        if np.all(g == 1):
+            return None
+        sl = slice(None) if rows is None else rows
+        return g[self.part[sl]].astype(np.float32)
 
 
 def pixel_base(sp: SceneParts, mesh, face: np.ndarray, position: np.ndarray, footprint: np.ndarray):
@@ -469,43 +485,109 @@ def choose_reference(sp: SceneParts, part: np.ndarray) -> None:
 
 
 def fit_scales(albedo: PixelAlbedo, rows: np.ndarray, weights: np.ndarray, diffuse: np.ndarray,
-               specular: np.ndarray | None, photo: np.ndarray) -> np.ndarray:
+               specular: np.ndarray | None, photo: np.ndarray, ks: bool = False):
     """New per-part scales (parts, 3) given the light: for each part, per channel (fit "colour") or
     shared (fit "scale"), the least-squares factor k of  k x base x scale x diffuse + specular = photo
     over the given rows (weights w). `diffuse`: (n, 3) material.kd x D L of the rows (kd = 1
-    albedo), `specular` the ks S L term or None. The reference part keeps its scale.
+    albedo), `specular` the ks S L term (each row's part weight applied) or None. The reference part
+    keeps its scale.
 
     The light and a part's scale trade off freely but for the other parts' pixels, which makes plain
     alternation creep (the light fits the part with the most pixels whatever its scale). So the
     light's own per-channel factor t is fitted too, on the reference part's pixels, and each other
     part's factor is taken relative to it: the step moves along that slow direction at once (the
-    next light solve then takes the factor t)."""
+    next light solve then takes the factor t).
+
+    With `ks` (and a specular term), each glossy part's specular weight (`PixelAlbedo.ks_scales`) is
+    fitted jointly with its factor (a factor h on its lobe), but for the part whose lobe carries the
+    most signal (its weight stays: the material's ks is its own), and kept where the part's rows
+    cannot tell it (h within KS_SIGMAS standard errors of 0). Returns (scales, ks_scales) then."""
     p = albedo.values(rows) * diffuse
-    r = photo - (0.0 if specular is None else specular)
     part = albedo.part[rows]
     new = albedo.scales.copy()
-    w = np.asarray(weights, float)[:, None]
-    sums = {}
-    for k in range(len(albedo.parts.parts)):
-        sel = part == k
-        if sel.any():
-            sums[k] = ((w[sel] * p[sel] * r[sel]).sum(axis=0), (w[sel] * p[sel] ** 2).sum(axis=0))
+    w = np.asarray(weights, float)
+    n_parts = len(albedo.parts.parts)
+    g = albedo.part_ks()
+    spec = None if specular is None else np.asarray(specular, float)
+    fit_ks = ks and spec is not None
+    r_all = photo - (0.0 if spec is None else spec)
+    sel_of = {k: np.flatnonzero((part == k) & (w > 0)) for k in range(n_parts)}
+    sel_of = {k: v for k, v in sel_of.items() if len(v)}
+    lobe_ref = -1
+    if fit_ks:  # the glossy part whose lobe carries the most signal keeps its weight
+        energy = {k: float((w[v, None] * spec[v] ** 2).sum()) for k, v in sel_of.items() if g[k] > 0}
+        lobe_ref = max(energy, key=energy.get) if energy else -1
+    new_ks = None if albedo.ks_scales is None else np.array(albedo.ks_scales, float)
+    if fit_ks and new_ks is None:
+        new_ks = np.ones(n_parts)
+
+    def solve(k: int, columns: list, sel: np.ndarray):
+        """Weighted least squares of part k's rows over `columns` ((n, 3) each; a column without
+        signal keeps 1) and, when its lobe is fitted, a factor h on it: (coefficients, h or None)."""
+        sw = np.sqrt(w[sel] / max(float(w[sel].mean()), 1e-300))[:, None]  # (mean 1: the errors' scale)
+        X = np.stack([(c * sw).T.ravel() for c in columns], axis=1)
+        live = np.sqrt((X**2).sum(axis=0)) > 0
+        x = np.ones(len(columns))
+        if fit_ks and k != lobe_ref and g[k] > 0:
+            M = np.column_stack([X[:, live], (spec[sel] * sw).T.ravel()])
+            y = (photo[sel] * sw).T.ravel()
+            norm = np.sqrt(np.maximum((M**2).sum(axis=0), 1e-300))
+            coef, *_ = np.linalg.lstsq(M / norm, y, rcond=None)
+            coef /= norm
+            resid = y - M @ coef
+            dof = max(len(y) - M.shape[1], 1)
+            try:
+                cov = np.linalg.inv((M / norm).T @ (M / norm))[-1, -1] / norm[-1] ** 2
+                sd = float(np.sqrt(max(cov * (resid @ resid) / dof, 0.0)))
+            except np.linalg.LinAlgError:
+                sd = float("inf")
+            h = float(coef[-1])
+            if h > KS_SIGMAS * sd:  # (else the rows cannot tell the part's lobe: its weight stays)
+                x[live] = coef[:-1]
+                return x, h
+        y = (r_all[sel] * sw).T.ravel()
+        if live.any():
+            x[live] = np.linalg.lstsq(X[:, live], y, rcond=None)[0]
+        return x, None
+
+    def channel_columns(base: np.ndarray) -> list:
+        cols = []
+        for c in range(3):
+            col = np.zeros_like(base)
+            col[:, c] = base[:, c]
+            cols.append(col)
+        return cols
+
     ref = albedo.parts.reference
     t = np.ones(3)
-    if ref in sums:
-        num, den = sums[ref]
-        t = np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
-        t = np.maximum(t, 1e-6)
+    if ref in sel_of:
+        x, h = solve(ref, channel_columns(p[sel_of[ref]]), sel_of[ref])
+        t = np.maximum(np.where(np.isfinite(x), x, 1.0), 1e-6)  # (the light's factor, not the part's)
+        if h is not None:
+            new_ks[ref] = new_ks[ref] * np.clip(h, KS_STEP_MIN, KS_STEP_MAX)
     for k, pt in enumerate(albedo.parts.parts):
-        if pt.fit == "reference" or k not in sums:
+        if k not in sel_of or k == ref:
             continue
-        num, den = sums[k]
-        if pt.fit == "scale":  # one grey factor g: min sum_c (g t_c p - r)^2
-            factor = np.full(3, (t * num).sum() / max((t * t * den).sum(), 1e-300))
+        sel = sel_of[k]
+        if pt.fit == "reference":
+            continue
+        tp = p[sel] * t[None, :]
+        if pt.fit == "scale":  # one grey factor on t x p
+            x, h = solve(k, [tp], sel)
+            factor = np.full(3, float(x[0]))
         else:
-            factor = np.where(den > 0, num / np.maximum(den, 1e-300), t) / t
-        new[k] = albedo.scales[k] * np.maximum(factor, 1e-6)
-    return new
+            x, h = solve(k, channel_columns(tp), sel)
+            factor = np.asarray(x, float)
+        new[k] = albedo.scales[k] * np.maximum(np.where(np.isfinite(factor), factor, 1.0), 1e-6)
+        if h is not None:
+            new_ks[k] = new_ks[k] * np.clip(h, KS_STEP_MIN, KS_STEP_MAX)
+    if not ks:
+        return new
+    return new, new_ks
+
+
+KS_SIGMAS = 3.0  # a part's own specular weight is fitted where its rows tell it this many sigmas above 0
+KS_STEP_MIN, KS_STEP_MAX = 0.25, 4.0  # ... by at most this factor per step (the light moves with it)
 
 
 GLOSSY_SIGMAS = 3.0  # a part keeps the lobe when its own ks is this many sigmas above 0 ...
@@ -573,18 +655,24 @@ def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np
     return glossy, sources, info
 
 
-def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None, specular_model: bool = True
-                  ) -> list[dict]:
+def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None, specular_model: bool = True,
+                  material_ks=None) -> list[dict]:
     """reflectance.json's `parts`: each part's name, faces, kd (mean over its surface), texture, the
-    fitted scale, its fit mode, its albedo relative to the reference part's and whether it has the
-    scene's specular term (`specular_model` False: the scene's model has none)."""
+    fitted scale, its fit mode, its albedo relative to the reference part's, whether it has the
+    scene's specular term (`specular_model` False: the scene's model has none) and its specular
+    weight (the factor on the material's ks, `material_ks`: its own ks)."""
     sp = albedo.parts
     kd = np.asarray(material_kd, float)
     means = [kd * albedo.scales[k] * part_mean_base(sp, mesh, k) for k in range(len(sp.parts))]
     ref = means[sp.reference]
     seen = np.bincount(albedo.part, minlength=len(sp.parts)) if pixels_per_part is None else pixels_per_part
+    weight = albedo.part_ks()
     out = []
     for k, p in enumerate(sp.parts):
+        glossy = specular_model and (albedo.glossy is None or bool(albedo.glossy[k]))
+        lobe = {"specular_weight": float(weight[k]) if glossy else 0.0}
+        if glossy and material_ks is not None:
+            lobe["ks"] = (np.asarray(material_ks, float) * weight[k]).tolist()
         tex = p.texture.path if p.texture is not None else ("vertex colours" if p.vertex_colours else None)
         out.append({"name": p.name, "faces": p.faces, "pixels": int(seen[k]), "fit": p.fit,
                     "kd": means[k].tolist(), "kd_start": list(p.kd), "kd_start_source": p.kd_source,
@@ -592,7 +680,7 @@ def parts_summary(albedo: PixelAlbedo, mesh, material_kd, pixels_per_part=None, 
                     "textured": tex is not None, "scale": (kd * albedo.scales[k]).tolist(),
                     "albedo_scale": albedo.scales[k].tolist(),
                     "relative_to_reference": (means[k] / np.where(ref > 0, ref, 1.0)).tolist(),
-                    "specular": specular_model and (albedo.glossy is None or bool(albedo.glossy[k])),
+                    "specular": glossy, **lobe,
                     "specular_decided_by": "the scene's model has no specular term" if not specular_model else (
                         (albedo.glossy_source or [None] * len(sp.parts))[k] or (
                             "materials.toml" if p.specular is not None else "every part (one model for the scene)"))})
@@ -612,16 +700,17 @@ def view_albedo(reflectance: dict | None, mesh, mesh_path: Path, scene_dir: Path
         return None
     fitted = {p["name"]: p.get("albedo_scale", [1.0, 1.0, 1.0]) for p in reflectance["parts"]}
     scales = np.array([fitted.get(n, [1.0, 1.0, 1.0]) for n in sp.names], float)
-    on = {p["name"]: bool(p.get("specular", True)) for p in reflectance["parts"]}
-    glossy = np.array([on.get(n, True) for n in sp.names])
-    return ViewShading(sp, mesh, scales, None if glossy.all() else glossy, camera, pose)
+    on = {p["name"]: float(p.get("specular_weight", 1.0)) if p.get("specular", True) else 0.0
+          for p in reflectance["parts"]}
+    glossy = np.array([on.get(n, 1.0) for n in sp.names])
+    return ViewShading(sp, mesh, scales, None if np.all(glossy == 1) else glossy, camera, pose)
 
 
 @dataclass
 class ViewShading:
     """A solve's parts seen from a camera (relight, insert): called on pixel samples it gives their
-    relative albedo (P, 3); `specular(samples)` their specular weights (`render.transport`), None when
-    every part has the lobe."""
+    relative albedo (P, 3); `specular(samples)` their specular weights (`render.transport`: 0 for a
+    matte part, else the part's factor on ks), None when every part has the lobe at weight 1."""
 
     sp: SceneParts
     mesh: object

@@ -157,7 +157,7 @@ class PlasticData:
 
 
 def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
-                 rows=None, weights=None, max_pairs: int = MAX_PAIRS, albedo=None) -> PlasticData:
+                 rows=None, weights=None, max_pairs: int = MAX_PAIRS, albedo=None, lobe=None) -> PlasticData:
     """Precompute the LM's inputs for a light (N, 3), as `reflectance.specular_data` (same
     arguments; `material` gives the IOR and the distribution)."""
     from .reflectance import fit_inputs
@@ -214,6 +214,8 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
         a_rows = np.asarray(albedo, np.float64)[rows]
         Q *= a_rows[:, None, :]
         lam *= a_rows
+    if lobe is not None:  # per-pixel factor on the lobe (a part's specular weight)
+        arrays["A"] *= np.asarray(lobe, np.float32)[rows][:, None]
     if weights is not None:
         sw = np.sqrt(weights)
         arrays["A"] *= sw.astype(np.float32)[:, None]

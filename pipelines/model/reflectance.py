@@ -162,7 +162,8 @@ def fit_inputs(vis, light, use, held_out, rows, weights, max_pairs: int, cap_giv
 def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, model: str,
                   use: np.ndarray | None = None, held_out: np.ndarray | None = None,
                   max_pairs: int = MAX_PAIRS, rows: np.ndarray | None = None,
-                  weights: np.ndarray | None = None, albedo: np.ndarray | None = None) -> SpecularData:
+                  weights: np.ndarray | None = None, albedo: np.ndarray | None = None,
+                  lobe: np.ndarray | None = None) -> SpecularData:
     """Precompute the LM's inputs for a light (N, 3) over the used pixels.
 
     Only texels with light are kept; if pixels x lit texels exceeds `max_pairs`, an evenly spread
@@ -170,7 +171,8 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     of used pixels) fixes the pixels instead, each standing for `weights` pixels: the fit then
     minimises the weighted residual (every term of a row is scaled by sqrt(weight)). `albedo`: (P, 3)
     per-pixel relative albedo (parts, textures): the diffuse shading is albedo x D L, and the fitted
-    kd a colour multiplying it.
+    kd a colour multiplying it. `lobe`: (P,) per-pixel factor on the specular term (each part's
+    specular weight, `parts.PixelAlbedo.specular_weight`), None: 1.
     """
     if model not in SPECULAR_MODELS:
         raise ValueError(f"no specular term in model {model!r}; use one of {SPECULAR_MODELS}")
@@ -198,6 +200,8 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     values = np.asarray(photo, np.float64)[rows]
     if albedo is not None:
         diffuse *= np.asarray(albedo, np.float64)[rows]
+    if lobe is not None:
+        A *= np.asarray(lobe, np.float32)[rows][:, None]
     if weights is not None:
         sw = np.sqrt(weights)
         diffuse *= sw[:, None]
@@ -477,13 +481,15 @@ def lobe_range(model: str) -> tuple[float, float]:
 
 
 def lm_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, material: Material, use=None, held_out=None,
-            rows=None, weights=None, albedo=None):
+            rows=None, weights=None, albedo=None, lobe=None):
     """The LM's inputs for `material`'s model under a light (`specular_data`, or `plastic_fit.plastic_data`)."""
     if material.model == PLASTIC:
         from .plastic_fit import plastic_data
 
-        return plastic_data(vis, photo, light, material, use, held_out, rows=rows, weights=weights, albedo=albedo)
-    return specular_data(vis, photo, light, material.model, use, held_out, rows=rows, weights=weights, albedo=albedo)
+        return plastic_data(vis, photo, light, material, use, held_out, rows=rows, weights=weights, albedo=albedo,
+                            lobe=lobe)
+    return specular_data(vis, photo, light, material.model, use, held_out, rows=rows, weights=weights, albedo=albedo,
+                         lobe=lobe)
 
 
 def lm_fit(data, start: Material, guard: bool = True) -> "SpecularFit":
@@ -523,7 +529,7 @@ def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
 def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
               use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
               max_rounds: int = 8, tol: float = ROUND_TOL, progress=None, rows=None, first=None,
-              albedo=None, beat: float | None = None) -> Reflectance:
+              albedo=None, beat: float | None = None, lobe=None) -> Reflectance:
     """Light under `start` (or `first`, its (solution, context) already solved) -> LM -> light -> ...
     until a round lowers the all-pixel RMSE by < tol.
 
@@ -531,7 +537,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     the lowest is kept (`_chosen`); the rounds stop on the fit error; at most `max_rounds` LM fits. `rows`: (pixel indices,
     weights) the LM fits, or `rows(light, kd)` giving them for a round's light and diffuse albedo
     (default: an evenly spread subset of the used pixels, `specular_data`). `albedo`: None, or a
-    callable giving the current (P, 3) per-pixel relative albedo (the light solve may refit it).
+    callable giving the current (P, 3) per-pixel relative albedo (the light solve may refit it);
+    `lobe` likewise the (P,) per-pixel factor on the specular term (the parts' specular weights).
     `beat`: another candidate's held-out error (`select`): the alternation stops as soon as its own
     held-out error heads for more than BEAT_MARGIN above it (`_heads_for`), as it cannot win.
     """
@@ -550,7 +557,8 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
     fitted: list[np.ndarray] = []  # LM results (kd, ks, log n) of the rounds so far
     for k in range(1, max_rounds + 1):
         chosen = rows(sol.light, material.kd) if callable(rows) else rows
-        data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen), albedo=_now(albedo))
+        data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen), albedo=_now(albedo),
+                       lobe=_now(lobe))
         fit = lm_fit(data, material, guard=k == 1)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
@@ -651,7 +659,8 @@ def fixed(material: Material, solve_light: SolveLight, mode: str, decision: str,
 def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light: SolveLight,
            use: np.ndarray | None = None, held_out: np.ndarray | None = None, kd_reference=None,
            min_gain: float = 0.05, max_rounds: int = 8, tol: float = ROUND_TOL, progress=None,
-           rows=None, probe_rows=None, plastic_starts=(), note=None, albedo=None, per_part=None) -> Reflectance:
+           rows=None, probe_rows=None, plastic_starts=(), note=None, albedo=None, per_part=None,
+           lobe=None) -> Reflectance:
     """`auto`: the Lambertian model unless a specular one lowers the held-out error by `min_gain`.
 
     1. Light under Lambert (kd = kd_reference).
@@ -689,7 +698,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         chosen = probe_rows(sol0.light) if callable(probe_rows) else probe_rows
         if chosen is None:
             chosen = rows(sol0.light, start.kd) if callable(rows) else rows
-        data = lm_data(vis, photo, sol0.light, start, use, held_out, **_rows(chosen), albedo=_now(albedo))
+        data = lm_data(vis, photo, sol0.light, start, use, held_out, **_rows(chosen), albedo=_now(albedo),
+                       lobe=_now(lobe))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
     probe = lm_fit(data, start)
@@ -697,7 +707,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     def fitted_under(material, light):
         """`material`'s LM fit with `light` fixed, on the probe's rows (None if its rows cannot fit it)."""
         try:
-            d = lm_data(vis, photo, light, material, use, held_out, **_rows(chosen), albedo=_now(albedo))
+            d = lm_data(vis, photo, light, material, use, held_out, **_rows(chosen), albedo=_now(albedo),
+                        lobe=_now(lobe))
         except FitError:
             return None
         return lm_fit(d, material)
@@ -842,7 +853,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         # a trailing candidate stops once it heads above the best so far (it cannot be chosen)
         beat = min(r[0] for r in results) if results else None
         spec = alternate(vis, photo, material, solve_light, use, held_out, kd_ref, max_rounds, tol, progress=shifted,
-                         rows=rows, first=first, albedo=albedo, beat=beat)
+                         rows=rows, first=first, albedo=albedo, beat=beat, lobe=lobe)
         first = None
         spec.rounds[0].light_seconds = seconds
         best = spec.rounds[spec.chosen_round]

@@ -96,7 +96,8 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     cube : the texel layout.
     specular : (P,) 1 where the pixel's surface has the material's specular term, 0 where it is
         Lambertian (a matte part of a scene whose other parts are glossy: no lobe, and under `plastic`
-        no coating: plain D); None: every pixel has it.
+        no coating: plain D), else the factor on its ks (its part's specular weight); None: every
+        pixel has it at weight 1.
 
     Returns
     -------
@@ -115,8 +116,14 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 def matte_rows(D: np.ndarray | None, S: np.ndarray | None, V: np.ndarray, normals: np.ndarray, cube: CubeMap,
                material: Material, specular: np.ndarray) -> None:
     """In place: the rows of pixels without the specular term (`specular` (P,) 0) lose the lobe (S
-    rows 0) and, under `plastic`, the coating (D rows the plain Lambertian ones)."""
-    matte = np.flatnonzero(np.asarray(specular) == 0)
+    rows 0) and, under `plastic`, the coating (D rows the plain Lambertian ones); the other rows' lobe
+    is multiplied by their weight (a part's specular weight, `parts.PixelAlbedo.ks_scales`)."""
+    w = np.asarray(specular)
+    if S is not None:
+        scaled = np.flatnonzero((w != 0) & (w != 1))
+        if len(scaled):
+            S[scaled] *= w[scaled, None].astype(S.dtype)
+    matte = np.flatnonzero(w == 0)
     if not len(matte):
         return
     if S is not None:
@@ -267,7 +274,8 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
 
     `albedo`: (P, 3) a per-pixel relative albedo (several parts, textures: `model.parts`) that
     multiplies the material's kd pixel by pixel; None: kd alone, uniform. `specular`: (P,) 0 for the
-    pixels of matte parts (no lobe, no coating: `transport`), None: the material's term everywhere."""
+    pixels of matte parts (no lobe, no coating: `transport`), else each pixel's factor on ks (its
+    part's specular weight); None: the material's term everywhere."""
     L = np.asarray(light, dtype=np.float64)
     if L.ndim == 1:
         L = np.repeat(L[:, None], 3, axis=1)

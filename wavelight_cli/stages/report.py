@@ -291,14 +291,16 @@ def _parts_table(s: Section, refl: dict):
 
     ref = (refl.get("reference_part") or {}).get("name")
     s.p(f"Parts: one {refl.get('model')} model for the scene, a diffuse colour per part (kd: the mean over the "
-        f"part's surface); the glossy parts wear its specular term, the matte ones none. The reference part "
+        f"part's surface); the glossy parts wear its specular term (at their own ks where their pixels tell it), "
+        f"the matte ones none. The reference part "
         f"**{ref}** keeps its start colour; light × albedo is known only as a product, so what the photo tells is "
         "each part's albedo relative to it.")
     s.table(["part", "faces", "pixels", "texture", "fit", "kd (mean)", "scale", "relative to reference", "specular"],
             [[p["name"], str(p["faces"]), str(p["pixels"]), p["texture"] or "–", p["fit"], rgb(p["kd"]),
               rgb(p["scale"]), rgb(p["relative_to_reference"]),
-              ("yes" if p.get("specular", True) else "no") + (f" ({p['specular_decided_by']})"
-                                                              if p.get("specular_decided_by") else "")]
+              ("yes" if p.get("specular", True) else "no")
+              + (f", ks {sum(p['ks']) / 3:.3g}" if p.get("specular", True) and p.get("ks") else "")
+              + (f" ({p['specular_decided_by']})" if p.get("specular_decided_by") else "")]
              for p in refl["parts"]], "lrrllrrrl")
 
 

@@ -184,7 +184,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 from pipelines.model.parts import parts_summary
 
                 sp = albedo.parts
-                reflectance["parts"] = parts_summary(albedo, mesh, m.kd, specular_model=m.specular)
+                reflectance["parts"] = parts_summary(albedo, mesh, m.kd, specular_model=m.specular, material_ks=m.ks)
                 reflectance["parts_options"] = parts.cache_params()
                 reflectance["reference_part"] = {"name": sp.names[sp.reference], "chosen_by": sp.reference_source}
                 reflectance["scale_ambiguity"] = (
