@@ -1,9 +1,14 @@
 """Make tests/data/scenes/spot_glossy_sun: spot_textured_sun's geometry, cameras and light, with Spot
 under a glossy coating (Mitsuba `roughplastic`, GGX alpha 0.15, IOR 1.49, its colour texture the
 coating's diffuse base) on the same matte ground: a scene of two parts of which one is glossy.
+With --split-ks KS, tests/data/scenes/spot_two_coats_sun: Spot's faces in two parts (split at a column of
+the main photo through its highlight), the second under the same coating at specular_reflectance KS:
+two glossy parts of different ks. (--ground-ks KS puts the ground under the coating instead; in these
+cameras its highlight is out of view, so auto rightly calls it matte: not kept in tests/data.)
 
 Usage:
     PYTHONPATH=. .venv/bin/python tools/make_glossy_parts_scene.py [--spp 1024] [--dest tests/data/scenes]
+        [--split-ks 0.3 | --ground-ks 0.3]
 
 Mitsuba 3 renders it with its `scalar_rgb` variant (`direct` integrator, Mitsuba's own OBJ loader,
 `tests/tool_scenes.render_mitsuba_parts`): the LLVM variants that tools/render_mitsuba_scenes.py
@@ -35,6 +40,38 @@ from pipelines.io import exports, images  # noqa: E402
 SOURCE = "spot_textured_sun"
 NAME = "spot_glossy_sun"
 GROUND_COATED = "spot_glossy_ground_sun"
+TWO_COATS = "spot_two_coats_sun"  # --split-ks: Spot's faces in two parts, the second at a weaker coating
+SPLIT_PART = "spot_flank"
+SPLIT_COLUMN = 164.0  # the main photo's column through the median of Spot's highlight pixels (spot_glossy_sun's
+# clean image over spot_textured_sun's above 1.3: 380 pixels, columns 143-190): faces whose centroid projects
+# left of it go to the second part, so that each part has about half of the highlight
+
+
+def split_spot(folder: Path, camera: Path, pose: Path) -> int:
+    """Rewrite folder/mesh.obj and mesh.mtl: Spot's faces whose centroid the main camera sees left
+    of SPLIT_COLUMN go to a part of their own (SPLIT_PART, the same texture). Returns its faces."""
+    cam, ps = json.loads(camera.read_text()), json.loads(pose.read_text())
+    R, t = np.array(ps["R"]), np.array(ps["t"])
+    lines = (folder / "mesh.obj").read_text().splitlines()
+    verts = np.array([[float(x) for x in ln.split()[1:4]] for ln in lines if ln.startswith("v ")])
+    out, flank, group = [], [], None
+    for ln in lines:
+        if ln.startswith("usemtl "):
+            group = ln.split()[1]
+        if ln.startswith("g ground"):  # (Spot's group ends: its split faces go before the ground)
+            out += ["g " + SPLIT_PART, "usemtl " + SPLIT_PART] + flank
+        if group == "spot" and ln.startswith("f "):
+            idx = [int(tok.split("/")[0]) - 1 for tok in ln.split()[1:4]]
+            xc = R @ verts[idx].mean(axis=0) + t
+            if cam["fx"] * xc[0] / xc[2] + cam["cx"] < SPLIT_COLUMN:
+                flank.append(ln)
+                continue
+        out.append(ln)
+    (folder / "mesh.obj").write_text("\n".join(out) + "\n")
+    mtl = (folder / "mesh.mtl").read_text()
+    block = mtl[mtl.index("newmtl spot"):mtl.index("newmtl ground")].replace("newmtl spot", "newmtl " + SPLIT_PART)
+    (folder / "mesh.mtl").write_text(mtl.rstrip("\n") + "\n\n" + block.rstrip("\n") + "\n")
+    return len(flank)
 ALPHA, DISTRIBUTION, INT_IOR, EXT_IOR = 0.15, "ggx", 1.49, 1.000277
 GROUND = (0.35, 0.45, 0.6)
 ENV_SUPERSAMPLE = 16
@@ -42,8 +79,10 @@ NOISE_REL = 0.005
 SEED = 32400
 
 
-def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None) -> dict:
+def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None, split_ks: float | None = None) -> dict:
     spot = folder / "bsdf_spot.xml"
+    coat = "" if split_ks is None else f"""
+    <float name="specular_reflectance" value="{split_ks}"/>"""
     spot.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
     <string name="distribution" value="{DISTRIBUTION}"/>
     <float name="alpha" value="{ALPHA}"/>
@@ -58,6 +97,12 @@ def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None) -> d
     </texture>
 </bsdf>
 """)
+    out = {"spot": spot}
+    if split_ks is not None:  # the second part: the same coating and texture at specular_reflectance split_ks
+        text = spot.read_text().replace('<boolean name="nonlinear" value="false"/>',
+                                        '<boolean name="nonlinear" value="false"/>' + coat)
+        out[SPLIT_PART] = folder / f"bsdf_{SPLIT_PART}.xml"
+        out[SPLIT_PART].write_text(text)
     ground = folder / "bsdf_ground.xml"
     if ground_ks is None:
         ground.write_text(f"""<bsdf type="diffuse" version="3.0.0">
@@ -75,11 +120,13 @@ def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None) -> d
     <float name="specular_reflectance" value="{ground_ks}"/>
 </bsdf>
 """)
-    return {"spot": spot, "ground": ground}
+    out["ground"] = ground
+    return out
 
 
 def render_view(src: Path, camera: Path, pose: Path, work: Path, bsdfs: dict, spp: int, seed: int) -> np.ndarray:
-    """Mitsuba's render of the scene's mesh from one camera and pose (a folder for render_mitsuba_parts)."""
+    """Mitsuba's render of the mesh in folder `src` from one camera and pose (a folder for
+    render_mitsuba_parts)."""
     from tool_scenes import render_mitsuba_parts
 
     view = work / f"view_{seed}"
@@ -99,13 +146,17 @@ def main() -> int:
     parser.add_argument("--ground-ks", type=float, default=None,
                         help="the ground under Spot's coating too, at this specular_reflectance (scene "
                              f"{GROUND_COATED}: two glossy parts of different specular weight)")
+    parser.add_argument("--split-ks", type=float, default=None,
+                        help=f"Spot's faces left of the main photo's column {SPLIT_COLUMN:g} a part of their own "
+                             f"({SPLIT_PART}) at this specular_reflectance (scene {TWO_COATS})")
     args = parser.parse_args()
-    name = NAME if args.ground_ks is None else GROUND_COATED
+    name = TWO_COATS if args.split_ks is not None else NAME if args.ground_ks is None else GROUND_COATED
     src = HERE / "tests" / "data" / "scenes" / SOURCE
     dst = args.dest / name
     if dst.exists():
         shutil.rmtree(dst)
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(".wavelight", "out", "image.png"))
+    flank_faces = split_spot(dst, src / "camera.json", src / "pose.json") if args.split_ks is not None else 0
     light = images.read_image(src / "truth" / "env_latlong.exr").pixels
     rng = np.random.default_rng(SEED)
     t0 = time.time()
@@ -116,12 +167,12 @@ def main() -> int:
         big = np.repeat(np.repeat(light, ENV_SUPERSAMPLE, axis=0), ENV_SUPERSAMPLE, axis=1)
         images.write_exr(work / "mitsuba" / "light.exr", exports.to_mitsuba(big))
         (work / "mitsuba" / "emitter.xml").write_text(exports.mitsuba_xml("light.exr"))
-        bsdfs = bsdf_files(work, src / "spot_texture.png", args.ground_ks)
+        bsdfs = bsdf_files(work, src / "spot_texture.png", args.ground_ks, args.split_ks)
         views = [("main", src, dst, dst / "truth")]
         views += [(p.name, p, dst / "views" / p.name, None) for p in sorted((src / "views").iterdir())]
         for k, (view_name, folder, out, truth) in enumerate(views):
             camera = folder / "camera.json" if (folder / "camera.json").is_file() else src / "camera.json"
-            clean = render_view(src, camera, folder / "pose.json", work, bsdfs, args.spp, SEED + k).astype(np.float32)
+            clean = render_view(dst, camera, folder / "pose.json", work, bsdfs, args.spp, SEED + k).astype(np.float32)
             mask = images.read_mask(folder / "mask.png")
             sigma = NOISE_REL * float(clean[mask].mean())
             noisy = np.clip(clean + rng.normal(0.0, sigma, clean.shape), 0.0, None).astype(np.float32)
@@ -131,7 +182,7 @@ def main() -> int:
             noise[view_name] = sigma
             print(f"  {view_name}: {time.time() - t0:.0f} s, noise sigma {sigma:.3g}")
         novel = src / "truth" / "novel_view"
-        clean = render_view(src, novel / "camera.json", novel / "pose.json", work, bsdfs, args.spp, SEED + 50)
+        clean = render_view(dst, novel / "camera.json", novel / "pose.json", work, bsdfs, args.spp, SEED + 50)
         images.write_exr(dst / "truth" / "novel_view" / "image.exr", clean.astype(np.float32))
         print(f"  novel view: {time.time() - t0:.0f} s")
     material = json.loads((src / "truth" / "material.json").read_text())
@@ -141,6 +192,11 @@ def main() -> int:
         "kd_mean": material["parts"]["spot"]["kd_mean"],
         "formula": "Mitsuba roughplastic: specular = microfacet F D G / (4 cos_i cos_o), GGX, Smith G; diffuse = "
                    "texture(uv) / (1 - Fdr_int) / eta^2 / pi * (1 - F(cos_i)) (1 - F(cos_o)) (nonlinear=false)"}
+    if args.split_ks is not None:
+        material["parts"][SPLIT_PART] = dict(material["parts"]["spot"], specular_reflectance=args.split_ks,
+                                             faces=flank_faces, note=f"Spot's faces left of the main photo's column "
+                                             f"{SPLIT_COLUMN:g} (tools/make_glossy_parts_scene.py --split-ks)")
+        material["parts"]["spot"]["specular_reflectance"] = 1.0
     if args.ground_ks is not None:
         material["parts"]["ground"] = {
             "type": "roughplastic", "distribution": DISTRIBUTION, "alpha": ALPHA, "int_ior": INT_IOR,
@@ -156,7 +212,8 @@ def main() -> int:
     params.pop("verification", None)
     (dst / "truth" / "scene_params.json").write_text(json.dumps(params, indent=1) + "\n")
     (dst / "README.txt").write_text(
-        f"Scene {name}: {SOURCE}'s mesh (mesh.obj, mesh.mtl: parts spot and ground), cameras, poses, masks and\n"
+        f"Scene {name}: {SOURCE}'s mesh (mesh.obj, mesh.mtl: parts spot"
+        f"{', ' + SPLIT_PART if args.split_ks is not None else ''} and ground), cameras, poses, masks and\n"
         f"correspondences (main photo and views/left, views/right), under the same light (truth/env_latlong.exr),\n"
         f"with Spot under a glossy coating: Mitsuba roughplastic ({DISTRIBUTION}, alpha {ALPHA}, int_ior {INT_IOR}),\n"
         f"spot_texture.png (sRGB) its diffuse base; the ground " + (
@@ -165,7 +222,10 @@ def main() -> int:
         ". Rendered by\n"
         f"tools/make_glossy_parts_scene.py (Mitsuba 3 scalar_rgb, direct, {args.spp} spp) + N(0, 0.5 % of the mean\n"
         f"over mask.png). truth/: image_clean.exr (main), novel_view/image.exr (clean), material.json, scene_params.json.\n"
-        "Nothing in the scene folder says which part is glossy (mesh.mtl is the diffuse scene's).\n")
+        + (f"Spot's faces left of the main photo's column {SPLIT_COLUMN:g} are a part of their own ({SPLIT_PART}, "
+           f"{flank_faces} faces,\nthe same texture and coating at specular_reflectance {args.split_ks}; Spot's "
+           "at 1).\n" if args.split_ks is not None else "")
+        + "Nothing in the scene folder says which part is glossy (mesh.mtl is the diffuse scene's).\n")
     print(f"{name}: written to {dst} in {time.time() - t0:.0f} s")
     return 0
 

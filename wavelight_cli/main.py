@@ -539,6 +539,9 @@ def reflectance_options(f):
                    "fitted colour.")
 @click.option("--texture-colour", is_flag=True,
               help="Fit an RGB colour per part on top of its texture (default: one grey scale per textured part).")
+@click.option("--shared-ks", is_flag=True,
+              help="The glossy parts share the material's one ks (default: each glossy part gets its own where its "
+                   "pixels show its highlight: reflectance.json's parts[].ks).")
 @click.option("--robust/--no-robust", default=True, show_default=True,
               help="Down-weight the few pixels the model cannot explain (a dust speck, a mis-registered rim, a "
                    "highlight no lobe fits: at most 2 %, beyond 4 noise scales) and solve again; "
@@ -557,8 +560,8 @@ def reflectance_options(f):
 @force_option
 @views_options
 @click.pass_obj
-def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, robust, clipped, view_exposure,
-              reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
+def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_colour, shared_ks, robust, clipped,
+              view_exposure, reflectance, max_rounds, min_specular_gain, exposure, force, **kw):
     """Recover the light (and reflectance) from the photo -> out/light_latlong.exr, relit.png,
     reflectance.json, solve_report.json, ..."""
     from pipelines.controllers.solve import ReflectanceOptions
@@ -575,7 +578,8 @@ def solve_cmd(obj, basis, sh_nonnegative, single_material, no_texture, texture_c
     refl = ReflectanceOptions(reflectance, max_rounds, min_specular_gain)
     opts = replace(_solve_opts(kw, basis, sh_nonnegative), robust=robust, clipped=clipped, view_exposure=view_exposure)
     solve.solve_stage(scene, _vis_opts(kw), opts, material, exposure, obj["console"], force, obj["lock_wait"],
-                      refl, given, select, PartsOptions(not single_material, not no_texture, texture_colour))
+                      refl, given, select, PartsOptions(not single_material, not no_texture, texture_colour,
+                                                                   shared_ks))
 
 
 @_command("compare")

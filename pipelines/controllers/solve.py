@@ -305,6 +305,10 @@ class _Systems:
                 spec = np.asarray(material.ks)[None, :] * (self.fit_rows.specular(material).rows @ Lf).astype(np.float64)
                 if self.albedo.ks_scales is not None:  # (the rows carry the lobe at weight 1)
                     spec *= self.albedo.ks_scales[self.albedo.part[rows]][:, None]
+        if material.specular and not self.albedo.own_ks:  # (--shared-ks: the weights stay)
+            kept = self.albedo.ks_scales
+            return (fit_scales(self.albedo, rows, weights, diffuse, spec, self.targets[rows]),
+                    np.ones(len(self.albedo.parts.parts)) if kept is None else kept)
         return fit_scales(self.albedo, rows, weights, diffuse, spec, self.targets[rows], ks=material.specular)
 
     def part_leaf_systems(self, tree, material: Material, system=None) -> list:

@@ -34,14 +34,19 @@ FIT_MODES = ("reference", "colour", "scale")
 
 @dataclass(frozen=True)
 class PartsOptions:
-    """solve's --single-material (parts False), --no-texture (texture False), --texture-colour."""
+    """solve's --single-material (parts False), --no-texture (texture False), --texture-colour,
+    --shared-ks (the glossy parts' one ks: no specular weight of their own)."""
 
     parts: bool = True
     texture: bool = True
     texture_colour: bool = False
+    shared_ks: bool = False
 
     def cache_params(self) -> dict:
-        return {"parts": self.parts, "texture": self.texture, "texture_colour": self.texture_colour}
+        out = {"parts": self.parts, "texture": self.texture, "texture_colour": self.texture_colour}
+        if self.shared_ks:
+            out["shared_ks"] = True
+        return out
 
 
 def parts_files(mesh_path: Path, scene_dir: Path) -> dict:
@@ -390,6 +395,7 @@ class PixelAlbedo:
     glossy_source: list | None = None  # per part, how that was decided
     # (parts,) each glossy part's specular weight: its ks is the material's x this (`fit_scales`); None: 1
     ks_scales: np.ndarray | None = None
+    own_ks: bool = True  # False (--shared-ks): the weights stay 1, the glossy parts share the material's ks
 
     def values(self, rows=None) -> np.ndarray:
         sl = slice(None) if rows is None else rows

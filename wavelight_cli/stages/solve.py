@@ -296,7 +296,8 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
         f"{p.name} ({p.faces} faces, {int(seen[k])} pixels, "
         f"{'texture ' + Path(p.texture.path).name if p.texture is not None else 'vertex colours' if p.vertex_colours else 'kd'}"
         f"{', reference' if k == sp.reference else ''})" for k, p in enumerate(sp.parts)))
-    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp, *pm.declared_glossy(sp))
+    return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp, *pm.declared_glossy(sp),
+                          own_ks=not parts.shared_ks)
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:
