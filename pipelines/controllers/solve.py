@@ -817,16 +817,40 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         # the probe's shading with the Lambertian light fixed: its base and its lobe at the fitted width
         if isinstance(data, SpecularData):
             D, S = data.diffuse, data.specular(probe.material.shininess)
-        else:
+            plain = None
+        else:  # (plastic: a matte part has no coating either, its shading the Lambertian one)
             D, S = data.evaluate(probe.material.roughness)
+            plain = data.lambert
         glossy, sources, info = glossy_parts(albedo.parts, albedo.part[data.rows], D, S, data.photo,
-                                             reflectance.min_specular_gain)
+                                             reflectance.min_specular_gain, plain)
         systems.set_glossy(glossy, sources)
         note = "specular term per part: " + ", ".join(
             f"{p.name} {'glossy' if g else 'matte'} ({src})" for p, g, src in zip(albedo.parts.parts, glossy, sources))
         progress.note(note)
         w = systems.specular_weight()
         return (np.ones(len(values), bool) if w is None else w > 0), info
+    def decide_given(start: Material):
+        """A given model (--reflectance blinn-phong / plastic) on several undeclared parts: which of them
+        wear its lobe, decided as `auto` does (`decide_glossy`) on a probe of the model with the
+        Lambertian light fixed (a light solved under the lobe has bent to it on every part); when
+        none would, every part keeps it (the model was asked for). Returns the parts' numbers or None."""
+        if albedo is None or len(albedo.parts.parts) < 2 or all(p.specular is not None for p in albedo.parts.parts):
+            return None
+        progress.note(f"reflectance {reflectance.mode}: which parts wear its lobe: a probe with the Lambertian "
+                      "light fixed")
+        sol0, _ = round_light(Material(kd=material.kd))
+        chosen = probe_rows(sol0.light) if probe_rows is not None else None
+        data = rf.lm_data(vis, values, sol0.light, start, fit_use(), held, albedo=current_albedo(),
+                          lobe=systems.specular_weight(), **({} if chosen is None else
+                                                             {"rows": chosen[0], "weights": chosen[1]}))
+        before = (albedo.glossy, albedo.glossy_source)
+        decided = decide_glossy(data, rf.lm_fit(data, start))
+        if decided is not None and not decided[0].any():
+            systems.set_glossy(*before)
+            progress.note("specular term per part: no part's own lobe is significant; every part keeps the "
+                          "given model's")
+        return None if decided is None else decided[1]
+
     try:
         if reflectance.mode == "given":
             result = rf.fixed(material, round_light, "given", "given by the user (--material/--model/--kd/--ks/"
@@ -848,9 +872,12 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                    note=progress.note, albedo=current_albedo, per_part=decide_glossy,
                                    lobe=systems.specular_weight)
             else:
+                decided = decide_given(start)
                 result = rf.alternate(vis, values, start, round_light, fit_use(), held, material.kd,
                                       reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo,
                                       lobe=systems.specular_weight)
+                if decided is not None:
+                    result.candidates["parts"] = decided
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None

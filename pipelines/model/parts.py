@@ -507,7 +507,10 @@ def fit_scales(albedo: PixelAlbedo, rows: np.ndarray, weights: np.ndarray, diffu
     With `ks` (and a specular term), each glossy part's specular weight (`PixelAlbedo.ks_scales`) is
     fitted jointly with its factor (a factor h on its lobe), but for the part whose lobe carries the
     most signal (its weight stays: the material's ks is its own), and kept where the part's rows
-    cannot tell it (h within KS_SIGMAS standard errors of 0). Returns (scales, ks_scales) then."""
+    cannot tell it (h's standard error above KS_PRECISION: its highlight out of view). A step moves
+    the weight by h within [KS_STEP_MIN, KS_STEP_MAX] (the light moves with it; a part whose rows
+    tell h ~ 0, a matte part under a given model, goes towards 0 over the rounds). Returns
+    (scales, ks_scales) then."""
     p = albedo.values(rows) * diffuse
     part = albedo.part[rows]
     new = albedo.scales.copy()
@@ -547,10 +550,9 @@ def fit_scales(albedo: PixelAlbedo, rows: np.ndarray, weights: np.ndarray, diffu
                 sd = float(np.sqrt(max(cov * (resid @ resid) / dof, 0.0)))
             except np.linalg.LinAlgError:
                 sd = float("inf")
-            h = float(coef[-1])
-            if h > KS_SIGMAS * sd:  # (else the rows cannot tell the part's lobe: its weight stays)
+            if sd <= KS_PRECISION:  # (else the rows cannot tell the part's lobe: its weight stays)
                 x[live] = coef[:-1]
-                return x, h
+                return x, float(coef[-1])
         y = (r_all[sel] * sw).T.ravel()
         if live.any():
             x[live] = np.linalg.lstsq(X[:, live], y, rcond=None)[0]
@@ -592,7 +594,7 @@ def fit_scales(albedo: PixelAlbedo, rows: np.ndarray, weights: np.ndarray, diffu
     return new, new_ks
 
 
-KS_SIGMAS = 3.0  # a part's own specular weight is fitted where its rows tell it this many sigmas above 0
+KS_PRECISION = 0.1  # a part's own specular weight moves where its rows tell the factor on it this well
 KS_STEP_MIN, KS_STEP_MAX = 0.25, 4.0  # ... by at most this factor per step (the light moves with it)
 
 
@@ -611,7 +613,7 @@ def declared_glossy(sp: SceneParts) -> tuple[np.ndarray | None, list | None]:
 
 
 def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np.ndarray, photo: np.ndarray,
-                 min_gain: float) -> tuple[np.ndarray, list, list]:
+                 min_gain: float, plain: np.ndarray | None = None) -> tuple[np.ndarray, list, list]:
     """Which parts have a specular term: `--reflectance auto`'s test of each part, on the probe's rows
     (the Lambertian light fixed, the lobe's width as the probe fitted it).
 
@@ -619,7 +621,8 @@ def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np
         (each row scaled by sqrt(its weight)); part : (rows,) each row's part.
     Per part, kd (RGB) and one grey ks >= 0 are fitted to its rows alone (NNLS); the part is glossy
     when ks exceeds GLOSSY_SIGMAS standard errors and the lobe lowers the part's error by `min_gain`
-    against kd alone. A part declared in materials.toml (`specular`) keeps its declaration; one with
+    against kd alone (on `plain`, the rows' Lambertian shading, when the glossy base differs from it:
+    a coating's, which a matte part has not). A part declared in materials.toml (`specular`) keeps its declaration; one with
     fewer than GLOSSY_MIN_ROWS rows keeps the lobe (its pixels cannot tell). Returns the (parts,)
     flags, each part's source, and per part the numbers."""
     from scipy.optimize import nnls
@@ -645,7 +648,15 @@ def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np
             scale[scale == 0] = 1.0
             x, r_with = nnls(X / scale, y, maxiter=200)
             x /= scale
-            _, r_without = nnls(X[:, :3] / scale[:3], y, maxiter=200)
+            if plain is None:
+                _, r_without = nnls(X[:, :3] / scale[:3], y, maxiter=200)
+            else:
+                Xp = np.zeros((3 * m, 3))
+                for c in range(3):
+                    Xp[c * m:(c + 1) * m, c] = plain[sel, c]
+                sp_ = np.sqrt((Xp**2).sum(axis=0))
+                sp_[sp_ == 0] = 1.0
+                _, r_without = nnls(Xp / sp_, y, maxiter=200)
             dof = max(3 * m - 4, 1)
             try:
                 cov = np.linalg.inv(X.T @ X) * (r_with**2 / dof)
