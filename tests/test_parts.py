@@ -425,6 +425,17 @@ def test_glossy_parts_tells_a_glossy_part_from_a_matte_one():
     assert glossy.tolist() == [True, True, True] and "too few" in sources[1]
 
 
+def _relight_as_solved_and_export(scene: Path) -> float:
+    """`relight` renders the photo as the solve did (each part's material as fitted: its error equals
+    the solve's); then `export`. Returns the solve's relit error."""
+    solved = json.loads((scene / "out" / "solve_report.json").read_text())["relit"]["relative_rmse_vs_photo"]
+    assert invoke(scene, "relight").exit_code == 0
+    relit = json.loads((scene / "out" / "relight.json").read_text())["relative_rmse_vs_photo"]
+    assert relit == pytest.approx(solved, rel=2e-3)
+    assert invoke(scene, "export").exit_code == 0
+    return solved
+
+
 def _copy_glossy(tmp_path: Path) -> Path:
     return _copy(GLOSSY, tmp_path / "glossy")
 
@@ -445,11 +456,7 @@ def test_a_glossy_part_and_a_matte_one(tmp_path):
     assert parts["ground"]["specular_decided_by"].startswith("auto: its own ks")
     by = {p["name"]: p for p in refl["candidates"]["parts"]}
     assert by["spot"]["gain"] > 0.3 and by["ground"]["gain"] < 0.05  # measured 60 % and 0.3 %
-    solved = json.loads((scene / "out" / "solve_report.json").read_text())["relit"]["relative_rmse_vs_photo"]
-    assert invoke(scene, "relight").exit_code == 0
-    relit = json.loads((scene / "out" / "relight.json").read_text())["relative_rmse_vs_photo"]
-    assert relit == pytest.approx(solved, rel=2e-3)
-    assert invoke(scene, "export").exit_code == 0
+    solved = _relight_as_solved_and_export(scene)
     mitsuba = scene / "out" / "export" / "mitsuba"
     assert 'bsdf type="diffuse"' in (mitsuba / "bsdf_ground.xml").read_text()
     assert 'bsdf type="roughplastic"' in (mitsuba / "bsdf_spot.xml").read_text()
@@ -559,11 +566,7 @@ def test_two_glossy_parts_each_with_its_own_ks(tmp_path):
     print("ks", parts["spot"]["ks"][0], parts["spot_flank"]["ks"][0], "ratio", ratio)
     assert ratio == pytest.approx(0.3, rel=0.15)
     assert parts["ground"]["specular_weight"] == 0.0
-    solved = json.loads((scene / "out" / "solve_report.json").read_text())["relit"]["relative_rmse_vs_photo"]
-    assert invoke(scene, "relight").exit_code == 0
-    relit = json.loads((scene / "out" / "relight.json").read_text())["relative_rmse_vs_photo"]
-    assert relit == pytest.approx(solved, rel=2e-3)
-    assert invoke(scene, "export").exit_code == 0
+    solved = _relight_as_solved_and_export(scene)
     mitsuba = scene / "out" / "export" / "mitsuba"
     weight = {n: float(re.search(r'name="specular_reflectance" value="([^,"]+)', (mitsuba / f"bsdf_{n}.xml")
                                  .read_text()).group(1)) for n in ("spot", "spot_flank")}

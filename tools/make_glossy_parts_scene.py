@@ -79,48 +79,43 @@ NOISE_REL = 0.005
 SEED = 32400
 
 
-def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None, split_ks: float | None = None) -> dict:
-    spot = folder / "bsdf_spot.xml"
-    coat = "" if split_ks is None else f"""
-    <float name="specular_reflectance" value="{split_ks}"/>"""
-    spot.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
+def coating_xml(diffuse: str, ks: float | None = None) -> str:
+    """Mitsuba roughplastic with the scenes' coating over `diffuse` (its diffuse_reflectance element),
+    at specular_reflectance `ks` (None: Mitsuba's default 1)."""
+    weight = "" if ks is None else f"""
+    <float name="specular_reflectance" value="{ks}"/>"""
+    return f"""<bsdf type="roughplastic" version="3.0.0">
     <string name="distribution" value="{DISTRIBUTION}"/>
     <float name="alpha" value="{ALPHA}"/>
     <float name="int_ior" value="{INT_IOR}"/>
     <float name="ext_ior" value="{EXT_IOR}"/>
-    <boolean name="nonlinear" value="false"/>
-    <texture type="bitmap" name="diffuse_reflectance">
+    <boolean name="nonlinear" value="false"/>{weight}
+    {diffuse}
+</bsdf>
+"""
+
+
+def bsdf_files(folder: Path, texture: Path, ground_ks: float | None = None, split_ks: float | None = None) -> dict:
+    """The parts' BSDF files: Spot coated over its texture (and its split part at `split_ks`), the
+    ground diffuse, or coated at `ground_ks`."""
+    textured = f"""<texture type="bitmap" name="diffuse_reflectance">
         <string name="filename" value="{texture}"/>
         <boolean name="raw" value="false"/>
         <string name="filter_type" value="bilinear"/>
         <string name="wrap_mode" value="repeat"/>
-    </texture>
+    </texture>"""
+    colour = f'{GROUND[0]} {GROUND[1]} {GROUND[2]}'
+    texts = {"spot": coating_xml(textured),
+             "ground": f"""<bsdf type="diffuse" version="3.0.0">
+    <rgb name="reflectance" value="{colour}"/>
 </bsdf>
-""")
-    out = {"spot": spot}
+""" if ground_ks is None else coating_xml(f'<rgb name="diffuse_reflectance" value="{colour}"/>', ground_ks)}
     if split_ks is not None:  # the second part: the same coating and texture at specular_reflectance split_ks
-        text = spot.read_text().replace('<boolean name="nonlinear" value="false"/>',
-                                        '<boolean name="nonlinear" value="false"/>' + coat)
-        out[SPLIT_PART] = folder / f"bsdf_{SPLIT_PART}.xml"
-        out[SPLIT_PART].write_text(text)
-    ground = folder / "bsdf_ground.xml"
-    if ground_ks is None:
-        ground.write_text(f"""<bsdf type="diffuse" version="3.0.0">
-    <rgb name="reflectance" value="{GROUND[0]} {GROUND[1]} {GROUND[2]}"/>
-</bsdf>
-""")
-    else:  # the ground under the same coating at a weaker specular weight (--ground-ks)
-        ground.write_text(f"""<bsdf type="roughplastic" version="3.0.0">
-    <string name="distribution" value="{DISTRIBUTION}"/>
-    <float name="alpha" value="{ALPHA}"/>
-    <float name="int_ior" value="{INT_IOR}"/>
-    <float name="ext_ior" value="{EXT_IOR}"/>
-    <boolean name="nonlinear" value="false"/>
-    <rgb name="diffuse_reflectance" value="{GROUND[0]} {GROUND[1]} {GROUND[2]}"/>
-    <float name="specular_reflectance" value="{ground_ks}"/>
-</bsdf>
-""")
-    out["ground"] = ground
+        texts[SPLIT_PART] = coating_xml(textured, split_ks)
+    out = {}
+    for name, text in texts.items():
+        out[name] = folder / f"bsdf_{name}.xml"
+        out[name].write_text(text)
     return out
 
 

@@ -739,7 +739,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             elif k == 0:
                 ne = systems.system(m) if not m.specular else systems.system(m, ROUND_ROWS)
             else:  # the same rows under the new factors: their tree systems are kept per part
-                ne = with_scales(ne, albedo.scales, albedo.ks_scales)
+                ne = with_scales(ne, albedo.scales, np.ones(len(albedo.scales)) if albedo.ks_scales is None else
+                                 albedo.ks_scales)
             quick = bases.refit(ne, vis.cube, first)
             if quick is None:
                 sol, ne = solve_light_only(m)
@@ -829,6 +830,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         progress.note(note)
         w = systems.specular_weight()
         return (np.ones(len(values), bool) if w is None else w > 0), info
+
     def decide_given(start: Material):
         """A given model (--reflectance blinn-phong / plastic) on several undeclared parts: which of them
         wear its lobe, decided as `auto` does (`decide_glossy`) on a probe of the model with the

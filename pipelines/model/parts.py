@@ -622,9 +622,9 @@ def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np
     Per part, kd (RGB) and one grey ks >= 0 are fitted to its rows alone (NNLS); the part is glossy
     when ks exceeds GLOSSY_SIGMAS standard errors and the lobe lowers the part's error by `min_gain`
     against kd alone (on `plain`, the rows' Lambertian shading, when the glossy base differs from it:
-    a coating's, which a matte part has not). A part declared in materials.toml (`specular`) keeps its declaration; one with
-    fewer than GLOSSY_MIN_ROWS rows keeps the lobe (its pixels cannot tell). Returns the (parts,)
-    flags, each part's source, and per part the numbers."""
+    a coating's, which a matte part has not). A part declared in materials.toml (`specular`) keeps
+    its declaration; one with fewer than GLOSSY_MIN_ROWS rows keeps the lobe (its pixels cannot
+    tell). Returns the (parts,) flags, each part's source, and per part the numbers."""
     from scipy.optimize import nnls
 
     glossy = np.ones(len(sp.parts), bool)
@@ -654,9 +654,9 @@ def glossy_parts(sp: SceneParts, part: np.ndarray, diffuse: np.ndarray, lobe: np
                 Xp = np.zeros((3 * m, 3))
                 for c in range(3):
                     Xp[c * m:(c + 1) * m, c] = plain[sel, c]
-                sp_ = np.sqrt((Xp**2).sum(axis=0))
-                sp_[sp_ == 0] = 1.0
-                _, r_without = nnls(Xp / sp_, y, maxiter=200)
+                norm = np.sqrt((Xp**2).sum(axis=0))
+                norm[norm == 0] = 1.0
+                _, r_without = nnls(Xp / norm, y, maxiter=200)
             dof = max(3 * m - 4, 1)
             try:
                 cov = np.linalg.inv(X.T @ X) * (r_with**2 / dof)
