@@ -127,6 +127,11 @@ def _gram(A: np.ndarray) -> np.ndarray:
     return np.triu(G) + np.triu(G, 1).T
 
 
+def _channel(v: np.ndarray, c: int) -> np.ndarray:
+    """Channel c of a per-channel value (C,) (a scalar) or per-row one (n, C) (an (n, 1) column)."""
+    return v[..., c][:, None] if v.ndim == 2 else np.asarray(v[c])
+
+
 @dataclass
 class RowsPart:
     """A weighted sample of transport rows: for channel c, sum_j w_j (T_c L - b_c)_j^2 with
@@ -185,13 +190,7 @@ class RowsPart:
 
     def _ks(self, c: int) -> np.ndarray:
         """Channel c's ks: a scalar, or (n, 1) per row."""
-        ks = self.ks_eff
-        return ks[..., c][:, None] if ks.ndim == 2 else np.asarray(ks[c])
-
-    @property
-    def _ks_rows(self) -> np.ndarray:
-        ks = self.ks_eff
-        return ks if ks.ndim == 2 else ks[None, :]
+        return _channel(self.ks_eff, c)
 
     def with_scales(self, scales: np.ndarray, ks_scales: np.ndarray | None = None) -> "RowsPart":
         """The same rows with other part factors (`group_scales`, and `group_ks` when given): the tree
@@ -249,14 +248,7 @@ class RowsPart:
 
     def _kd(self, c: int) -> np.ndarray:
         """Channel c's kd: a scalar, or (n, 1) per row."""
-        kd = self.kd_eff
-        return kd[..., c][:, None] if kd.ndim == 2 else np.asarray(kd[c])
-
-    @property
-    def _kd_rows(self) -> np.ndarray:
-        """kd as (1, C) or (n, C), to multiply (n, C) radiance."""
-        kd = self.kd_eff
-        return kd if kd.ndim == 2 else kd[None, :]
+        return _channel(self.kd_eff, c)
 
     # -- the part interface (as system.SystemPart) --------------------------------------------------
     def _versions(self) -> tuple:
@@ -427,9 +419,9 @@ class RowsPart:
         L = np.asarray(light, dtype=np.float64)
         sub = slice(None) if support is None else np.asarray(support, np.int64)
         D = self.D.rows[:, sub]
-        out = self._kd_rows * (D @ L[sub].astype(np.float32)).astype(np.float64)
+        out = np.atleast_2d(self.kd_eff) * (D @ L[sub].astype(np.float32)).astype(np.float64)
         if self.S is not None:
-            out += self._ks_rows * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
+            out += np.atleast_2d(self.ks_eff) * (self.S.rows[:, sub] @ L[sub].astype(np.float32)).astype(np.float64)
         return out
 
     def residual(self, light: np.ndarray) -> np.ndarray:
