@@ -251,7 +251,7 @@ def _linear_fit(data: PlasticData, alpha: float):
 def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, guard: bool = True):
     """Fit kd, ks (RGB) and alpha with the light fixed; returns a `reflectance.SpecularFit` whose
     material is `plastic` (ks made grey, its colour moved into the light, as `fit_specular`)."""
-    from .reflectance import FitError, SpecularFit
+    from .reflectance import LM_TOLERANCES, FitError, SpecularFit
 
     t0 = time.perf_counter()
     f = data.fit
@@ -294,7 +294,7 @@ def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, 
         x0[6] = np.clip(x0[6], lo + 1e-9, hi - 1e-9)
         res = least_squares(residual, x0, jac=jacobian, method="trf", x_scale="jac",
                             bounds=([0.0] * 6 + [lo], [np.inf] * 6 + [hi]),
-                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
+                            max_nfev=max_evaluations, **LM_TOLERANCES)
         return res.x, float(2 * res.cost) * scale**2
 
     a0 = float(np.clip(start.roughness if start.roughness > 0 else 0.1, *ALPHA_RANGE))
