@@ -51,6 +51,19 @@ def test_plastic_is_registered():
             Material.from_json(bad)
 
 
+@pytest.mark.parametrize("eta", [1.05, 1.49, 3.0])
+def test_float32_fresnel_from_outside_is_fresnels(eta):
+    # the lobe's per-(pixel, texel) Fresnel factor (`lobe_factors`) against the float64 reference,
+    # over the whole incidence range including normal and grazing incidence
+    c = np.concatenate([[0.0, 1e-7, 1e-3, 1.0], np.random.default_rng(3).random(4000)]).astype(np.float32)
+    ref = mf.fresnel(c.astype(np.float64), eta)[0]
+    got = mf.fresnel_outside(c, eta)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=2e-5, atol=0)
+    assert got[0] == pytest.approx(1.0) and got[3] == pytest.approx(((eta - 1) / (eta + 1)) ** 2, rel=1e-5)
+    np.testing.assert_allclose(mf.fresnel_outside(c, 0.8), mf.fresnel(c.astype(np.float64), 0.8)[0], rtol=1e-6)
+
+
 @pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
 @pytest.mark.parametrize("alpha", [0.0, 0.05, 0.3, 0.7])
 def test_brdf_is_mitsubas_roughplastic(distribution, alpha):

@@ -68,6 +68,35 @@ def fresnel(cos_i, eta):
     return r, np.where(outside, -ct, ct), eta_ti
 
 
+def fresnel_outside(cos_i, eta: float) -> np.ndarray:
+    """`fresnel`'s F for light arriving from outside (cos_i in [0, 1]) a denser medium (eta > 1), in
+    float32 with in-place passes: the lobe's factors need it per (pixel, texel), where `fresnel`'s
+    float64 temporaries cost more than the rest of `lobe_factors` together. No total internal
+    reflection from outside: cos_t^2 = 1 - (1 - cos_i^2) / eta^2 >= 1 - 1 / eta^2 > 0."""
+    if not eta > 1.0:
+        return fresnel(cos_i, eta)[0].astype(np.float32)
+    c = np.asarray(cos_i, np.float32)
+    e = np.float32(eta)
+    ct = c * c
+    ct -= np.float32(1.0)
+    ct *= np.float32(1.0 / (eta * eta))
+    ct += np.float32(1.0)
+    np.sqrt(ct, out=ct)
+    t = ct * e  # eta cos_t
+    r = c - t
+    t += c
+    r /= t  # a_s
+    r *= r
+    t = c * e  # eta cos_i
+    p = ct - t
+    t += ct
+    p /= t  # a_p
+    p *= p
+    r += p
+    r *= np.float32(0.5)
+    return r
+
+
 def fresnel_diffuse_reflectance(eta: float) -> float:
     """Mitsuba's fit of the diffuse (hemispherically averaged) Fresnel reflectance."""
     inv = 1.0 / eta
@@ -345,7 +374,7 @@ def lobe_factors(nd, nv, vd, w, eta, blur: float = TEXEL_BLUR):
     c2 = 1.0 / (1.0 + t2h)
     x2 = np.minimum(x * x, t2h)
     y2 = t2h - x2
-    F = fresnel(vh, eta)[0].astype(np.float32)
+    F = fresnel_outside(vh, eta)
     up = (nd > 0) & (nv > 0)
     A = np.where(up, w * F / (4.0 * np.maximum(nv, 1e-6) * c2 * c2), 0.0).astype(np.float32)
     var = blur * w / 4.0 * 2.0  # light-direction variance / 4 (h turns half as fast), x 2 (alpha^2 = 2 sigma^2)
