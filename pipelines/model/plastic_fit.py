@@ -174,32 +174,36 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
     w = cube.solid_angles[lit].astype(np.float32)[None, :]
     nv = np.einsum("pk,pk->p", s.normal[rows], s.view[rows])
     L32 = L[lit].astype(np.float32)
-    out = 0
-    for first in range(0, P, 2048):  # blocks of stored rows, keeping the selected ones
-        r = rows[(rows >= first) & (rows < first + 2048)]
-        if len(r) == 0:
-            continue
-        V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)[:, lit].astype(np.float32)
-        nrm = s.normal[r].astype(np.float32)
-        vw = s.view[r].astype(np.float32)
-        k = slice(out, out + len(r))
-        D = np.maximum(nrm @ m.T, 0.0) * V / np.float32(np.pi)
-        lam[k] = D @ L32
-        nd = nrm @ dirs.T
-        x = np.clip(nd, 0.0, 1.0) * np.float32(mf.TABLE_SIZE - 1)  # the table's hat functions at N.d
-        i = np.minimum(x.astype(np.int32), mf.TABLE_SIZE - 2)
-        f = x - i
-        nb, T = len(r), mf.TABLE_SIZE
-        idx = (np.arange(nb, dtype=np.int64)[:, None] * T + i).ravel()
-        lo_w, hi_w = (D * (1 - f)).ravel(), (D * f).ravel()
-        for c in range(3):  # Q[row, j] += D (1 - f) L, Q[row, j + 1] += D f L (the two hats of each pair)
-            Lc = np.broadcast_to(L32[None, :, c], D.shape).ravel()
-            Q[k, :, c] += np.bincount(idx, lo_w * Lc, minlength=nb * T).reshape(nb, T)
-            Q[k, :, c] += np.bincount(idx + 1, hi_w * Lc, minlength=nb * T + 1)[: nb * T].reshape(nb, T)
-        A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
-        arrays["A"][k] = A * V
-        arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
-        out += len(r)
+    # blocks of stored rows (the selected ones of each: `rows` is sorted), on both cores
+    firsts = np.arange(0, P, 1024)
+    bounds = np.searchsorted(rows, np.append(firsts, P))
+    blocks = [b for b in range(len(firsts)) if bounds[b + 1] > bounds[b]]
+
+    def run(todo):
+        for b in todo:
+            k = slice(int(bounds[b]), int(bounds[b + 1]))
+            r = rows[k]
+            V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)[:, lit].astype(np.float32)
+            nrm = s.normal[r].astype(np.float32)
+            vw = s.view[r].astype(np.float32)
+            D = np.maximum(nrm @ m.T, 0.0) * V / np.float32(np.pi)
+            lam[k] = D @ L32
+            nd = nrm @ dirs.T
+            x = np.clip(nd, 0.0, 1.0) * np.float32(mf.TABLE_SIZE - 1)  # the table's hat functions at N.d
+            i = np.minimum(x.astype(np.int32), mf.TABLE_SIZE - 2)
+            f = x - i
+            nb, T = len(r), mf.TABLE_SIZE
+            idx = (np.arange(nb, dtype=np.int64)[:, None] * T + i).ravel()
+            lo_w, hi_w = (D * (1 - f)).ravel(), (D * f).ravel()
+            for c in range(3):  # Q[row, j] += D (1 - f) L, Q[row, j + 1] += D f L (the two hats of each pair)
+                Lc = np.broadcast_to(L32[None, :, c], D.shape).ravel()
+                Q[k, :, c] += np.bincount(idx, lo_w * Lc, minlength=nb * T).reshape(nb, T)
+                Q[k, :, c] += np.bincount(idx + 1, hi_w * Lc, minlength=nb * T + 1)[: nb * T].reshape(nb, T)
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
+            arrays["A"][k] = A * V
+            arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
+
+    parallel_blocks(run, blocks)
     graze = np.flatnonzero(nv < mf.GRAZING_NV)
     graze_factors = None
     if len(graze):
