@@ -96,11 +96,11 @@ def test_corrected_tree_systems_equal_systems_projected_afresh(mitsuba_scene, ma
     assert np.abs(kept.G - fresh.project_tree(trees[1]).G).max() == 0.0  # projected again, not corrected
 
 
-def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene):
-    """bunny_sun's sun, with wrong visibility bits toward it in some fitted and held-out rows (what
-    the adaptive inference can get wrong): casting the bright directions again and exploring the
-    levels on the system corrected in place gives the light, levels and errors of the same route
-    with the system built again from the corrected visibility."""
+def _sun_with_wrong_bits(mitsuba_scene, n_wrong: int, seed: int):
+    """bunny_sun at R = 16 (every 3rd pixel), its sun's texels (`bright_texels` of a first light), and
+    its visibility with the bit toward the sun flipped in `n_wrong` random pixels that face it (what
+    the adaptive inference can get wrong). Returns (scene, vis, texels, (values, usable, held,
+    options), the corrupted VisibilityData)."""
     scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
     photo = images.read_image(scene.path / "image.exr")
     options = SolveOptions()
@@ -108,14 +108,21 @@ def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene):
     light = bases.solve(_Systems(vis, values, usable, held, options, _quiet()).system(Material()), vis.cube).light
     texels = bright_texels(light, vis.cube)
     assert 1 <= len(texels) <= 8  # the sun
-
     stored = np.asarray(vis.stored).copy()
-    rng = np.random.default_rng(0)
-    wrong = rng.choice(vis.n_pixels, 400, replace=False)
-    for t in texels:  # flip the bit toward the sun in those pixels that face it
+    wrong = np.random.default_rng(seed).choice(vis.n_pixels, n_wrong, replace=False)
+    for t in texels:
         can = (vis.samples.normal[wrong] @ vis.cube.directions[t]) > 0.05
         stored[wrong[can], t >> 3] ^= np.uint8(1 << (t & 7))
     corrupt = VisibilityData(vis.samples, vis.cube, vis.supersample, stored)
+    return scene, vis, texels, (values, usable, held, options), corrupt
+
+
+def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene):
+    """bunny_sun's sun, with wrong visibility bits toward it in some fitted and held-out rows (what
+    the adaptive inference can get wrong): casting the bright directions again and exploring the
+    levels on the system corrected in place gives the light, levels and errors of the same route
+    with the system built again from the corrected visibility."""
+    scene, vis, texels, (values, usable, held, options), corrupt = _sun_with_wrong_bits(mitsuba_scene, 400, 0)
 
     def solved(in_place: bool):
         systems = _Systems(corrupt, values, usable, held, options, _quiet())
@@ -148,19 +155,8 @@ def test_a_recast_that_changes_few_rows_keeps_the_lights_tree(mitsuba_scene, n_w
     from pipelines.controllers.solve import RECAST_REFIT_SHARE, recast_bright
     from pipelines.light.bases import LightOptions
 
-    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
-    photo = images.read_image(scene.path / "image.exr")
-    options = SolveOptions()
-    values, usable, held = prepare_photo(vis, photo, options)
-    light = bases.solve(_Systems(vis, values, usable, held, options, _quiet()).system(Material()), vis.cube).light
-    texels = bright_texels(light, vis.cube)
-    stored = np.asarray(vis.stored).copy()
-    wrong = np.random.default_rng(1).choice(vis.n_pixels, n_wrong, replace=False)
-    for t in texels:
-        can = (vis.samples.normal[wrong] @ vis.cube.directions[t]) > 0.05
-        stored[wrong[can], t >> 3] ^= np.uint8(1 << (t & 7))
-    systems = _Systems(VisibilityData(vis.samples, vis.cube, vis.supersample, stored), values, usable, held,
-                       options, _quiet())
+    scene, vis, texels, (values, usable, held, options), corrupt = _sun_with_wrong_bits(mitsuba_scene, n_wrong, 1)
+    systems = _Systems(corrupt, values, usable, held, options, _quiet())
     system = systems.system(Material())
     first = bases.solve(system, vis.cube)
     sol, system, changed = recast_bright(systems, scene.backend, texels, Material(), LightOptions(), _quiet(),
