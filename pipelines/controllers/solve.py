@@ -37,7 +37,6 @@ LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of t
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
-RECAST_REFIT_SHARE = 0.01  # `recast_bright`: a cast that changed at most this share of the rows keeps the light's tree
 ROBUST_ROUNDS = 3  # the robust pass: weights -> light (and reflectance) again, at most this many times
 ROBUST_TRIGGER = 0.01  # ... while the new weights and targets move at least this share of the squared error
 ROBUST_LM_ROUNDS = 2  # a fitted specular term is refitted under the robust weights in this many LM rounds
@@ -398,19 +397,12 @@ class _Systems:
 
 
 def recast_bright(systems: _Systems, backend, texels: np.ndarray, material: Material, light_options: LightOptions,
-                  progress: Progress, resolve: bool = True, system=None, previous=None):
+                  progress: Progress, resolve: bool = True, system=None):
     """Cast `texels` (`bright_texels` of a light: the directions that carry much of it) exactly for
     every pixel (the visibility was inferred there from neighbours) and solve the light again on
     the corrected system, levels chosen afresh, so the report's levels and errors are all of the
     system the light is solved on. Returns (solution, system, what changed), the solution None
     unless `resolve`.
-
-    `previous`: the light solved before the cast. When the cast changed at most RECAST_REFIT_SHARE
-    of the fit rows and of the held-out rows (the inference is rarely wrong: typically a few rows
-    in ten thousand), its tree is re-solved on the corrected system (`bases.refit`, every row's
-    correction in the light) instead of exploring the levels again: so few rows cannot move a level's
-    held-out error by the refinement's gain threshold (teapot_sun_phong: 8 of 16384 rows, 2.2 s of
-    exploration). The sampled route only (the exact route is the reference).
 
     `system`: the sampled system of `material` the light was solved on; it is corrected in place
     for the few rows whose visibility changed (`_Systems.recast`), so that exploring the levels
@@ -426,15 +418,7 @@ def recast_bright(systems: _Systems, backend, texels: np.ndarray, material: Mate
         system = systems.system(material)
     if not resolve:
         return None, system, changed
-    if previous is not None and not exact and getattr(previous, "tree", None) is not None:
-        few = all(changed.get(k, 0) <= RECAST_REFIT_SHARE * n for k, n in
-                  (("fit_rows", system.fit.n_rows), ("held_out_rows", system.held_out.n_rows)))
-        sol = bases.refit(system, systems.vis.cube, previous) if few else None
-        if sol is not None:
-            changed["resolved"] = "refit"
-            return sol, system, changed
     o = light_options
-    changed["resolved"] = "explored"
     sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
                       o.sh_order, o.sh_nonnegative)
     return sol, system, changed
@@ -926,8 +910,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             return sol, system, done
         keep = None if options.exact else system  # corrected in place (the exact route builds anew)
         result.context = system = None  # (on the exact route the old G goes before the new one is built)
-        sol, system, changed = recast_bright(systems, backend, texels, material, light_options, progress, system=keep,
-                                             previous=sol)
+        sol, system, changed = recast_bright(systems, backend, texels, material, light_options, progress, system=keep)
         return sol, system, np.union1d(done, texels)
 
     def relit_view(sol):
