@@ -146,36 +146,6 @@ def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene):
     assert len(system.explore.memo) >= len(first.levels) - 1
 
 
-@pytest.mark.parametrize("n_wrong", [12, 400])
-def test_a_recast_that_changes_few_rows_keeps_the_lights_tree(mitsuba_scene, n_wrong):
-    """`recast_bright` with the light solved before the cast: when the cast corrects at most 1 % of
-    the fit and held-out rows, that light's tree is re-solved on the corrected system (no second
-    exploration), and the light is the exploration's within the noise; when it corrects more, the
-    levels are explored again (the exploration's light exactly)."""
-    from pipelines.controllers.solve import RECAST_REFIT_SHARE, recast_bright
-    from pipelines.light.bases import LightOptions
-
-    scene, vis, texels, (values, usable, held, options), corrupt = _sun_with_wrong_bits(mitsuba_scene, n_wrong, 1)
-    systems = _Systems(corrupt, values, usable, held, options, _quiet())
-    system = systems.system(Material())
-    first = bases.solve(system, vis.cube)
-    sol, system, changed = recast_bright(systems, scene.backend, texels, Material(), LightOptions(), _quiet(),
-                                         system=system, previous=first)
-    explored = bases.solve(system, vis.cube)
-    few = (changed["fit_rows"] <= RECAST_REFIT_SHARE * system.fit.n_rows
-           and changed["held_out_rows"] <= RECAST_REFIT_SHARE * system.held_out.n_rows)
-    assert few == (n_wrong == 12) and changed["fit_rows"] > 0
-    if few:
-        assert changed["resolved"] == "refit" and sol.tree.subdivided == first.tree.subdivided
-        assert sol.held_out_rmse <= 1.01 * explored.held_out_rmse
-        assert sol.fit_rmse <= 1.01 * explored.fit_rmse
-        irradiance = [vis.cube.solid_angles @ x.light.sum(axis=1) for x in (sol, explored)]
-        assert irradiance[0] == pytest.approx(irradiance[1], rel=0.01)
-    else:
-        assert changed["resolved"] == "explored"
-        np.testing.assert_array_equal(sol.light, explored.light)
-
-
 def _quiet():
     from pipelines.controllers.solve import Progress
 

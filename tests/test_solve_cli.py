@@ -279,6 +279,26 @@ def test_the_brightest_regions_centroid_follows_a_sun_between_texel_centres():
     assert "half as bright" in flat["note"] and flat["texels"] > 50
 
 
+def test_the_brightest_region_joins_a_sun_split_over_texels_two_apart():
+    """An NNLS light can put a sun's power in texels two apart with the one between dark
+    (suzanne_plastic_sun at R = 32: 139 / 90.6 / 79.6 in three such texels around the sun): the
+    region joins them over the gap, and its centroid lies between them (5.38 -> 1.44 deg off that
+    scene's sun), where joining neighbours only kept the peak texel."""
+    from pipelines.controllers import solve as S
+    from pipelines.light import cubemap
+
+    cube = cubemap.CubeMap(32)
+    d = cube.directions
+    i, j = 16 * 32 + 10, 16 * 32 + 12  # tile 0, one row: texels two apart
+    light = np.full((cube.n_texels, 3), 0.2)
+    light[i], light[j] = 100.0, 80.0
+    w = np.array([99.8 * cube.solid_angles[i], 79.8 * cube.solid_angles[j]])
+    expected = w[0] * d[i] + w[1] * d[j]
+    got = S.brightest(light, cube)["centroid"]
+    assert _angle_deg(got["direction"], expected) < 0.05
+    assert _angle_deg(got["direction"], d[i]) > 1.0 and got["texels"] == 2
+
+
 def test_recovered_sun_direction(solved):
     from pipelines.light import cubemap
     from pipelines.io import images

@@ -459,13 +459,16 @@ class SolveResult:
 
 BRIGHT_REGION_DEG = 20.0  # the brightest region: texels this close to the brightest one, at least half as bright
 BRIGHT_WINDOW_TEXELS = 1.5  # its centroid is then refined over the texels this many texel widths from it
+BRIGHT_JOIN_TEXELS = 2.5  # the region's texels are joined through others at most this many texel widths apart
 
 
 def _connected(d: np.ndarray, seed: int, candidates: np.ndarray, resolution: int) -> np.ndarray:
-    """(N,) bool: the candidate texels joined to `seed` through candidates that are neighbours (closer
-    than 1.5 face-centre texel widths: diagonals and across face edges included)."""
+    """(N,) bool: the candidate texels joined to `seed` through candidates closer than
+    BRIGHT_JOIN_TEXELS face-centre texel widths to each other (diagonals, across face edges, and
+    over one texel between: an NNLS light can spread a sun over texels two apart, the one between
+    dark)."""
     idx = np.flatnonzero(candidates | (np.arange(len(d)) == seed))
-    near = (d[idx] @ d[idx].T) >= np.cos(1.5 * 0.5 * np.pi / resolution)
+    near = (d[idx] @ d[idx].T) >= np.cos(BRIGHT_JOIN_TEXELS * 0.5 * np.pi / resolution)
     reached = idx == seed
     while True:
         grown = reached | near[reached].any(axis=0)
@@ -482,7 +485,8 @@ def brightest(light: np.ndarray, cube) -> dict:
 
     The luminance's excess over the median of the BRIGHT_REGION_DEG disc around the brightest texel
     (the sky around a sun) is the weight. The region: the texels of that disc at least half the
-    peak's excess, joined to it (a coarse solve's constant block: its centre). Its centroid is then
+    peak's excess, joined to it through such texels at most BRIGHT_JOIN_TEXELS apart (a coarse
+    solve's constant block: its centre; a sun split over texels two apart: between them). Its centroid is then
     refined over every texel within BRIGHT_WINDOW_TEXELS texel widths of it (twice): a sun between
     texel centres spreads over up to four texels (e.g. 0.26 / 0.11 / 0.11 / 0.11 of the light's
     power), of which the half-as-bright region keeps the peak alone (1.8 deg off that sun; the
