@@ -252,3 +252,31 @@ def test_a_rounds_system_builds_the_transport_of_its_head_rows_alone(mitsuba_sce
     np.testing.assert_array_equal(full.D.rows, whole.D.rows)
     if plastic:  # the coated D differs from the Lambertian one (the test sees the coated one)
         assert not np.allclose(full.D.rows, tr.diffuse().rows)
+
+
+def test_keeping_only_the_chosen_models_transport_drops_the_others_and_rebuilds_on_demand(mitsuba_scene):
+    """Once `auto` has chosen, the other candidates' kept transports go (`TransportRows.keep_only`):
+    the chosen model's stay the same arrays, the others' are gone, and a later request builds
+    them again with the same numbers."""
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(7)
+    rows = rng.permutation(vis.n_pixels)[:400]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = np.ones(len(rows))
+    phong = Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong")
+    plastic = Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2)
+    tr = TransportRows(vis, rows)
+    lambert_D = tr.part(Material(), photo, weights, len(rows)).D.rows.copy()
+    coated = tr.part(plastic, photo, weights, len(rows))
+    tr.keep_only(plastic)  # plastic chosen: its coated D and its S stay, the Lambertian D goes
+    assert tr._diffuse is None
+    again = tr.part(plastic, photo, weights, len(rows))
+    assert again.D.rows is coated.D.rows and again.S.rows is coated.S.rows
+    np.testing.assert_array_equal(tr.diffuse().rows, lambert_D)  # built again, the same
+    chosen = tr.part(phong, photo, weights, len(rows))
+    tr.keep_only(phong)  # blinn-phong chosen: the coating and any other lobe go, its S stays
+    assert tr._coated is None and tr._diffuse is not None
+    assert tr.part(phong, photo, weights, len(rows)).S.rows is chosen.S.rows
+    tr.keep_only(Material())  # lambert chosen: no lobe kept
+    assert tr._specular == {} and tr.diffuse().rows is chosen.D.rows
+    np.testing.assert_array_equal(tr.part(plastic, photo, weights, len(rows)).D.rows, coated.D.rows)

@@ -229,6 +229,12 @@ class _Systems:
                                    group=None if a is None else a.part[hs.rows], **grouped)
         return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
 
+    def keep_only(self, material: Material) -> None:
+        """Once the model is chosen: the kept transports of the other candidates go (memory)."""
+        if not self.options.exact:
+            self.fit_rows.keep_only(material)
+            self.held_rows.keep_only(material)
+
     def specular_weight(self, rows=None) -> np.ndarray | None:
         """(P,) (or of `rows`) 0 for the pixels of matte parts, None when every pixel has the lobe."""
         return None if self.albedo is None else self.albedo.specular_weight(rows)
@@ -888,6 +894,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None
     material, sol, system = result.material, result.solution, result.context
+    systems.keep_only(material)
     if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
         albedo.scales, albedo.ks_scales = part_scales.get(id(sol), (albedo.scales, albedo.ks_scales))
 

@@ -605,6 +605,20 @@ class TransportRows:
         out += [(S, m, "specular") for S, m in self._specular.values()]
         return out
 
+    def keep_only(self, material) -> None:
+        """Drop the kept transports that `material` does not use (the Lambertian D under `plastic`,
+        another coating's D, another lobe's S): once the model is chosen they only hold memory (and
+        are built again if asked for)."""
+        from ..model.materials import PLASTIC
+
+        if material.model == PLASTIC:
+            self._diffuse = None
+        key = (material.roughness, material.ior, material.distribution)
+        if self._coated is not None and (material.model != PLASTIC or self._coated[0] != key):
+            self._coated = None
+        lobe = (material.model, material.shininess, material.roughness, material.ior, material.distribution)
+        self._specular = {k: v for k, v in self._specular.items() if material.specular and tuple(k[:-1]) == lobe}
+
     def update(self, stored: np.ndarray, index: np.ndarray) -> None:
         """New visibility for some of these rows (`index` into them; `stored` their new stored
         rows): the kept transports are rebuilt for those rows alone, in place."""

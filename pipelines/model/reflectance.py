@@ -565,6 +565,7 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
         data = lm_data(vis, photo, sol.light, material, use, held_out, **_rows(chosen), albedo=_now(albedo),
                        lobe=_now(lobe))
         fit = lm_fit(data, material, guard=k == 1)
+        data = None  # (the LM's inputs go before the light's system is built: memory)
         material, _, _ = normalise(fit.material, sol.light, kd_ref)
         fitted.append(_params(material))
         fitted_material = material
@@ -768,6 +769,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
             if chosen is not None:
                 chosen = (chosen[0][keep[chosen[0]]], chosen[1][keep[chosen[0]]])
             use = keep if use is None else (np.asarray(use, bool) & keep)
+    data = None  # (the probe's inputs are not needed any more: memory)
     # a specular term: which lobe. The probe's material gets its own light (one solve); the microfacet
     # candidates are then fitted with that light fixed (it holds a highlight-free sun, unlike
     # Lambert's, which bends towards the highlights), from the alpha that matches the probe's
@@ -781,6 +783,12 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
         e1 = sol.held_out_rmse if sol.held_out_rmse is not None else sol.fit_rmse
         candidates.setdefault(name, {})["first_light_held_out_rmse"] = e1
         tried.append((e1, name, material, (sol, ctx), time.perf_counter() - ts))
+        # only each family's best first light may be alternated: the others' systems go now (memory)
+        fam = _family(name)
+        best = min((t for t in tried if _family(t[1]) == fam), key=lambda t: t[0])
+        for i, t in enumerate(tried):
+            if _family(t[1]) == fam and t is not best and t[3] is not None:
+                tried[i] = t[:3] + (None,) + t[4:]
         return sol
 
     material, _, _ = normalise(probe.material, sol0.light, kd_ref)
@@ -840,7 +848,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     # cannot tell them apart (each candidate was fitted to another model's light)
     runs, families = [], set()
     for t in tried:
-        family = PLASTIC if t[1].startswith(PLASTIC) else "phong"
+        family = _family(t[1])
         if family not in families:
             families.add(family)
             runs.append(t)
@@ -879,6 +887,12 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
                            f"Lambertian{versus}", candidates, time.perf_counter() - t0)
     return stay(f"lambert: a {name} term lowers the held-out error by only {100 * gain:.2f} % "
                 f"(< {100 * min_gain:g} %)", rounds)
+
+
+def _family(name: str) -> str:
+    """A candidate's family: the Phong lobes, or plastic's distributions (`select` alternates the
+    best first light of each)."""
+    return PLASTIC if name.startswith(PLASTIC) else "phong"
 
 
 def _lambert_rmse(data, kd, which: str) -> float | None:
