@@ -372,7 +372,6 @@ class _Systems:
         change: its tree systems stay exact without a second pass over the rows. Returns how many
         rows changed."""
         from ..geometry.visibility import VisibilityData, recast_columns
-        from ..light.rows import TransportRows
 
         v = self.vis
         old = np.asarray(v.stored)
@@ -382,12 +381,11 @@ class _Systems:
         out = {"pixels": int(len(changed))}
         if self.options.exact:
             return out
-        if system is None:
-            self.fit_rows = TransportRows(self.vis, self.fit_sample.rows)
-            self.held_rows = TransportRows(self.vis, self.held_sample.rows)
-            return out
-        parts = {id(self.fit_rows): [system.fit] + ([system.explore] if system.explore is not None else []),
-                 id(self.held_rows): [system.held_out]}
+        # without a system to correct, the kept transports' rows are still rebuilt in place (the
+        # systems projected from them before are stale by their version and projected again)
+        parts = {id(self.fit_rows): [] if system is None else [system.fit] + (
+                     [system.explore] if system.explore is not None else []),
+                 id(self.held_rows): [] if system is None else [system.held_out]}
         for tr in (self.fit_rows, self.held_rows):
             local = np.flatnonzero(np.isin(tr.rows, changed))
             out["fit_rows" if tr is self.fit_rows else "held_out_rows"] = int(len(local))
@@ -898,31 +896,49 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
         albedo.scales, albedo.ks_scales = part_scales.get(id(sol), (albedo.scales, albedo.ks_scales))
 
-    def refine_chosen(material, sol, system):
+    recast, changed = np.zeros(0, np.int64), None
+
+    def cast(light, system, done, resolve):
+        """The recast of the light's bright directions not cast yet (`recast_bright`): (solution or
+        None, system, the directions cast so far)."""
+        nonlocal changed
+        if not (adaptive and backend is not None):
+            return None, system, done
+        texels = np.setdiff1d(bright_texels(light, systems.vis.cube), done)
+        if not len(texels):
+            return None, system, done
+        keep = None if options.exact else system  # corrected in place (the exact route builds anew)
+        if resolve:
+            result.context = system = None  # (on the exact route the old G goes before the new one is built)
+            sol, system, counts = recast_bright(systems, backend, texels, material, light_options, progress,
+                                                system=keep)
+        else:  # (the rows alone: the caller builds its system next)
+            progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
+            sol, counts = None, systems.recast(backend, texels, keep)
+        changed = counts if changed is None else {k: changed.get(k, 0) + counts.get(k, 0)
+                                                  for k in {**changed, **counts}}
+        return sol, system, np.union1d(done, texels)
+
+    def cast_bright(sol, system, done):
+        """The light re-solved after its bright directions are cast, when some were not yet."""
+        again, system, done = cast(sol.light, system, done, True)
+        return (sol if again is None else again), system, done
+
+    def refine_chosen(material, sol, system, done):
         if not options.exact and material.specular and sol is not refined.get("solution"):
             # the rounds re-solved the refinement of an earlier material on a smaller system: refine once
-            # more under the chosen one, on the whole sample
+            # more under the chosen one, on the whole sample. The round's light has the refined one's
+            # bright directions (the same sun): they are cast first, its rows corrected in place, so
+            # the refinement is the final solve instead of one more exploration of the levels after it
+            # (a bright direction only the refined light has is still cast after it: `cast_bright`)
+            _, _, done = cast(sol.light, system, done, False)
             progress.note(f"refining the light under {material_text(material)}")
             system = systems.system(material)
             sol = full_solve(material, system)
-        return sol, system
+        return sol, system, done
 
-    sol, system = refine_chosen(material, sol, system)
+    sol, system, recast = refine_chosen(material, sol, system, recast)
     result.solution, result.context = sol, system
-    recast, changed = np.zeros(0, np.int64), None
-
-    def cast_bright(sol, system, done):
-        """The recast of the light's bright directions not cast yet (`recast_bright`)."""
-        nonlocal changed
-        if not (adaptive and backend is not None):
-            return sol, system, done
-        texels = np.setdiff1d(bright_texels(sol.light, systems.vis.cube), done)
-        if not len(texels):
-            return sol, system, done
-        keep = None if options.exact else system  # corrected in place (the exact route builds anew)
-        result.context = system = None  # (on the exact route the old G goes before the new one is built)
-        sol, system, changed = recast_bright(systems, backend, texels, material, light_options, progress, system=keep)
-        return sol, system, np.union1d(done, texels)
 
     def relit_view(sol):
         return render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values(),
@@ -975,7 +991,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                      ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo,
                                      lobe=systems.specular_weight)
                 material = again.material
-                sol, system = refine_chosen(material, again.solution, again.context)
+                sol, system, recast = refine_chosen(material, again.solution, again.context, recast)
                 n0 = len(result.rounds)
                 result.rounds += [replace(r, index=n0 + r.index, kind="robust") for r in again.rounds]
                 result.chosen_round = n0 + again.chosen_round
@@ -1052,7 +1068,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         "exact_directions": {"texels": recast.tolist(), **({"changed": changed} if changed else {}),
                              "note": "directions that carry much of the light, cast for every pixel"
                                      + ("; changed: the used pixels whose visibility toward them the cast corrected, "
-                                        "and how many of them are fitted or held-out rows" if changed else "")},
+                                        "and how many of them are fitted or held-out rows (summed over the casts)" if changed else "")},
         "normal_equations_seconds": getattr(system, "seconds", 0.0),
         "observability": {"texels": n, "unobservable": n_unobs, "unobservable_fraction": n_unobs / max(n, 1),
                           "weakly_observed": int(((observability < 1e-3) & ~unobservable).sum()),
