@@ -39,6 +39,7 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
     values, usable, held = prepare_photo(vis, photo, options, photo_path)
     systems = _Systems(vis, values, usable, held, options, progress)
     ne = systems.system(material)
+    first = None  # the default light before the cast, when the cast corrected its system in place
     if adaptive and backend is not None:
         o = options.light
         first = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
@@ -48,12 +49,18 @@ def compare_scene(vis, photo, material: Material, options: SolveOptions, photo_p
             keep = None if options.exact else ne
             ne = None
             _, ne, _ = recast_bright(systems, backend, texels, material, o, progress, resolve=False, system=keep)
+        if options.exact or not len(texels):
+            first = None
     observability, unobservable = ls.observability(ne)
     rows, lights = [], []
     for basis, variant in COMPARE_RUNS:
         o = replace(options.light, basis=basis, **variant)
-        sol = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
-                          o.sh_nonnegative)
+        # the default basis follows the levels of its light before the cast, as `solve` does (`recast_bright`)
+        sol = bases.replay(ne, vis.cube, first, o.levels_value, o.min_gain) if (
+            first is not None and o == options.light) else None
+        if sol is None:
+            sol = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
+                              o.sh_nonnegative)
         lights.append((f"{sol.basis} ({sol.n_coefficients})", sol.light))
         min_rel = sol.details.get("min_radiance_relative", float(sol.light.min() / max(sol.light.max(), 1e-300)))
         rows.append({"basis": sol.basis, "coefficients": sol.n_coefficients, "levels": len(sol.levels),

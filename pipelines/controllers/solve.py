@@ -401,30 +401,36 @@ class _Systems:
 
 
 def recast_bright(systems: _Systems, backend, texels: np.ndarray, material: Material, light_options: LightOptions,
-                  progress: Progress, resolve: bool = True, system=None):
+                  progress: Progress, resolve: bool = True, system=None, previous=None):
     """Cast `texels` (`bright_texels` of a light: the directions that carry much of it) exactly for
     every pixel (the visibility was inferred there from neighbours) and solve the light again on
-    the corrected system, levels chosen afresh, so the report's levels and errors are all of the
+    the corrected system, the level chosen afresh, so the report's levels and errors are all of the
     system the light is solved on. Returns (solution, system, what changed), the solution None
     unless `resolve`.
 
     `system`: the sampled system of `material` the light was solved on; it is corrected in place
-    for the few rows whose visibility changed (`_Systems.recast`), so that exploring the levels
-    again re-solves the trees it has already projected without a pass over the rows. Without it
-    (and on the exact route) the system is built again: the caller drops its old one first, as the
-    transport rows are large (~1 GB at R = 32 for a glossy material)."""
+    for the few rows whose visibility changed (`_Systems.recast`), so that solving the levels again
+    re-solves the trees it has already projected without a pass over the rows: with `previous` (the
+    light solved on it before the cast) its levels' trees are followed (`bases.replay`), else they
+    are explored afresh. Without it (and on the exact route) the system is built again and the
+    levels explored afresh: the caller drops its old one first, as the transport rows are large
+    (~1 GB at R = 32 for a glossy material)."""
     from ..light import bases
 
     progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
     exact = systems.options.exact
-    changed = systems.recast(backend, texels, None if exact else system)
-    if exact or system is None:
+    corrected = not exact and system is not None
+    changed = systems.recast(backend, texels, system if corrected else None)
+    if not corrected:
         system = systems.system(material)
     if not resolve:
         return None, system, changed
     o = light_options
-    sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
-                      o.sh_order, o.sh_nonnegative)
+    sol = bases.replay(system, systems.vis.cube, previous, o.levels_value, o.min_gain) if (
+        corrected and previous is not None) else None
+    if sol is None:
+        sol = bases.solve(system, systems.vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution,
+                          o.sh_order, o.sh_nonnegative)
     return sol, system, changed
 
 
@@ -898,20 +904,20 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     recast, changed = np.zeros(0, np.int64), None
 
-    def cast(light, system, done, resolve):
+    def cast(sol, system, done, resolve):
         """The recast of the light's bright directions not cast yet (`recast_bright`): (solution or
         None, system, the directions cast so far)."""
         nonlocal changed
         if not (adaptive and backend is not None):
             return None, system, done
-        texels = np.setdiff1d(bright_texels(light, systems.vis.cube), done)
+        texels = np.setdiff1d(bright_texels(sol.light, systems.vis.cube), done)
         if not len(texels):
             return None, system, done
         keep = None if options.exact else system  # corrected in place (the exact route builds anew)
         if resolve:
             result.context = system = None  # (on the exact route the old G goes before the new one is built)
             sol, system, counts = recast_bright(systems, backend, texels, material, light_options, progress,
-                                                system=keep)
+                                                system=keep, previous=sol)
         else:  # (the rows alone: the caller builds its system next)
             progress.note(f"casting the {len(texels)} brightest light directions exactly for every pixel")
             sol, counts = None, systems.recast(backend, texels, keep)
@@ -921,7 +927,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     def cast_bright(sol, system, done):
         """The light re-solved after its bright directions are cast, when some were not yet."""
-        again, system, done = cast(sol.light, system, done, True)
+        again, system, done = cast(sol, system, done, True)
         return (sol if again is None else again), system, done
 
     def refine_chosen(material, sol, system, done):
@@ -931,7 +937,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # bright directions (the same sun): they are cast first, its rows corrected in place, so
             # the refinement is the final solve instead of one more exploration of the levels after it
             # (a bright direction only the refined light has is still cast after it: `cast_bright`)
-            _, _, done = cast(sol.light, system, done, False)
+            _, _, done = cast(sol, system, done, False)
             progress.note(f"refining the light under {material_text(material)}")
             system = systems.system(material)
             sol = full_solve(material, system)

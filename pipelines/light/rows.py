@@ -31,7 +31,7 @@ from .haar import HaarTree
 from .system import SystemPart
 
 
-MEMO_TREES = 6  # tree systems a RowsPart keeps (the latest exploration's levels)
+MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
 
 
 class Pyramid:
@@ -123,8 +123,18 @@ def _rhs(A: np.ndarray, r: np.ndarray) -> np.ndarray:
 def _gram(A: np.ndarray) -> np.ndarray:
     """A'A (A float64: dsyrk; float32: ssyrk, accumulated in float32), symmetrised, in float64."""
     syrk = blas.dsyrk if A.dtype == np.float64 else blas.ssyrk
+    # the upper triangle; without a `c` scipy's wrapper starts from zeros, so the strict lower
+    # triangle is 0 and G + G' with the diagonal halved is the symmetric matrix (one pass, no triu copies)
     G = syrk(1.0, np.ascontiguousarray(A).T, trans=0, lower=0).astype(np.float64)
-    return np.triu(G) + np.triu(G, 1).T
+    G += G.T
+    diagonal = np.einsum("ii->i", G)
+    diagonal *= 0.5
+    return G
+
+
+def _tree_size(key: tuple) -> int:
+    """A memo key's tree size: its subdivided nodes (leaves = tiles + 3 x nodes)."""
+    return sum(len(nodes) for nodes in key[1])
 
 
 def _channel(v: np.ndarray, c: int) -> np.ndarray:
@@ -281,8 +291,11 @@ class RowsPart:
         else:
             out = self._system(A_D, A_S)
         self.memo[key] = (self._versions(), out)
-        while len(self.memo) > MEMO_TREES:  # the least recently used go (memory: leaves^2 per tree, part, channel)
-            self.memo.popitem(last=False)
+        while len(self.memo) > MEMO_TREES:  # (memory: leaves^2 per tree, part, channel)
+            # the smallest tree goes (this one too, if it is): the cheapest to project again. Levels
+            # are solved coarse to fine, so a least-recently-used memo would lose every large tree of
+            # an exploration solved again (`bases.replay`, other part factors) to its small first levels
+            del self.memo[min(self.memo, key=_tree_size)]
         return out
 
     def _group_pieces(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray) -> dict:

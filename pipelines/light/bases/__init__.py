@@ -102,6 +102,18 @@ def solve(ne, cube, basis: str = "wavelet", levels: int | str = "auto", min_gain
     return module.solve(ne, cube, options, progress)
 
 
+def replay(ne, cube, solution, levels: int | str = "auto", min_gain: float = 0.01, progress=None):
+    """`solution`'s refinement levels solved again on a corrected system, its trees followed and the
+    level chosen afresh (`tree.replay`), or None for the bases without levels of trees (solve them
+    again)."""
+    info = BASES.get(solution.basis)
+    if info is not None and info.module == "tree" and solution.levels and solution.levels[0].tree is not None:
+        from .tree import replay as replay_tree
+
+        return replay_tree(ne, cube, solution, levels, min_gain, progress)
+    return None
+
+
 def refit(ne, cube, solution):
     """`solution` re-solved on another system with its structure kept (a tree basis' tree, warm
     started), or solved again from scratch for the bases without one. Used when the transport

@@ -59,11 +59,14 @@ def _refine(tree: HaarTree, light: np.ndarray, coefficients: np.ndarray, basis: 
 
 
 def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: int | str = "auto",
-               min_gain: float = 0.01, patience: int = 1, progress=None) -> LightSolution:
+               min_gain: float = 0.01, patience: int = 1, progress=None, trees=None) -> LightSolution:
     """The paper's coarse-to-fine solve (`wavelet`) or its quadtree twin.
 
     levels : "auto" (refine until the held-out error stops falling by `min_gain` for `patience`
         levels; keep the best) or a number of levels (1 = the 9 tile roots only).
+    trees : the levels' trees of an earlier solve, followed instead of refining while they last
+        (`replay`); the level is chosen afresh and refinement goes on past the last one if the
+        errors ask for it.
     """
     if basis not in ("wavelet", "quadtree"):
         raise ValueError(f"solve_tree needs basis wavelet or quadtree, got {basis!r}")
@@ -71,7 +74,7 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
     fit, held = ne.fit, ne.held_out
     explore = fit if ne.explore is None else ne.explore
     _, unobservable = observability(ne)
-    tree = HaarTree.roots(cube.tile_sizes)
+    tree = HaarTree.roots(cube.tile_sizes) if not trees else trees[0]
     frozen: list[set] = [set() for _ in cube.tile_sizes]
     stopper = _Stopper(min_gain, patience)
     records: list[Level] = []
@@ -93,7 +96,12 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
             progress(rec)
         score = rec.held_out_rmse if rec.held_out_rmse is not None else rec.fit_rmse
         stop = stopper.update(index, score) if levels == "auto" else index + 1 >= int(levels)
-        new_tree = None if stop else _refine(tree, light, coeffs, basis, frozen)
+        if stop:
+            new_tree = None
+        elif trees is not None and index + 1 < len(trees):
+            new_tree = trees[index + 1]
+        else:
+            new_tree = _refine(tree, light, coeffs, basis, frozen)
         rec.seconds = time.perf_counter() - t0
         if stop or new_tree.subdivided == tree.subdivided:
             break
@@ -114,6 +122,17 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
     all_rmse = both.relative_rmse(light)
     return LightSolution(basis, light, coeffs, records, chosen, all_rmse, info, time.perf_counter() - t_all,
                          best.tree, {"unobservable_texels": int(unobservable.sum())}, unobservable)
+
+
+def replay(ne: LightSystem, cube: CubeMap, solution: LightSolution, levels: int | str = "auto",
+           min_gain: float = 0.01, progress=None) -> LightSolution:
+    """`solution`'s levels solved again on `ne` (the same pixels, a few rows' transport corrected in
+    place: `rows.RowsPart.correct`), following its trees: every level's system is then one the
+    corrected memo already holds (no pass over the rows), the level is chosen afresh on the new errors
+    and refinement continues past the last tree if they ask for it. What `solve_tree` would explore
+    from scratch differs only where the few corrected rows would have steered a refinement."""
+    return solve_tree(ne, cube, solution.basis, levels, min_gain, progress=progress,
+                      trees=[lv.tree for lv in solution.levels])
 
 
 def _leaf_guess(level: Level, P) -> np.ndarray:
