@@ -298,6 +298,14 @@ def test_refit_measures_the_new_materials_held_out_error(glossy):
     # the final light is fitted to all pixels: no worse over them than the fit-only light
     both = ne.fit.combine(ne.held_out)
     assert both.relative_rmse(again.light) <= both.relative_rmse(rec.light) + 1e-12
+    # a round's refit (`all_pixels=False`) keeps the fit pixels' light: the same level, and the
+    # all-pixel re-solve is `finish`'s
+    quick = lt.refit(ne, glossy.cube, sol, all_pixels=False)
+    assert not quick.details["all_pixels"]
+    np.testing.assert_array_equal(quick.light, quick.levels[quick.chosen].light)
+    assert quick.held_out_rmse == pytest.approx(again.held_out_rmse, rel=1e-9)
+    np.testing.assert_allclose(lt.finish(ne, glossy.cube, quick).light, again.light, rtol=1e-6,
+                               atol=1e-9 * float(np.abs(again.light).max()))
 
 
 def test_an_alternation_keeps_the_best_fit_among_rounds_that_predict_unseen_pixels_alike():

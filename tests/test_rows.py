@@ -180,6 +180,31 @@ def test_replaying_the_levels_on_a_corrected_system_needs_no_pass_over_the_rows(
         assert lv.held_out_rmse == pytest.approx(corrected.held_out.relative_rmse(lv.light), rel=1e-6)
 
 
+def test_an_intermediate_light_finished_is_the_all_pixel_solve(mitsuba_scene):
+    """`solve(all_pixels=False)` keeps the chosen level's light as the exploration fitted it (the
+    controller's intermediate lights: a reflectance round re-solves them, a bright-direction cast
+    solves them again); `finish` re-solves it on every pixel of its system: the light `solve` gives
+    at once, no worse over all pixels, its levels and held-out errors unchanged."""
+    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
+    photo = images.read_image(scene.path / "image.exr")
+    options = SolveOptions()
+    values, usable, held = prepare_photo(vis, photo, options)
+    system = _Systems(vis, values, usable, held, options, _quiet()).system(Material())
+    lazy = bases.solve(system, vis.cube, all_pixels=False)
+    full = bases.solve(system, vis.cube)
+    assert not lazy.details["all_pixels"] and full.details["all_pixels"]
+    np.testing.assert_array_equal(lazy.light, lazy.levels[lazy.chosen].light)
+    done = bases.finish(system, vis.cube, lazy)
+    assert done.details["all_pixels"] and bases.finish(system, vis.cube, done) is done
+    scale = float(np.abs(full.light).max())
+    assert float(np.abs(done.light - lazy.light).max()) > 1e-4 * scale  # the re-solve changed it
+    np.testing.assert_allclose(done.light, full.light, rtol=1e-6, atol=1e-9 * scale)
+    both = system.fit.combine(system.held_out)
+    assert both.relative_rmse(done.light) <= both.relative_rmse(lazy.light) + 1e-9
+    assert done.fit_rmse == pytest.approx(both.relative_rmse(done.light), rel=1e-9)
+    assert done.held_out_rmse == lazy.held_out_rmse and done.chosen == lazy.chosen
+
+
 def _quiet():
     from pipelines.controllers.solve import Progress
 

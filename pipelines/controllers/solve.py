@@ -683,10 +683,13 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
 
     refined: dict = {}  # the latest refinement: reflectance rounds re-solve its model, not refine again
 
-    def full_solve(m: Material, ne):
+    def full_solve(m: Material, ne, all_pixels: bool = False):
+        """The levels explored on `ne`. Not re-solved on all its pixels unless `all_pixels`: most
+        lights are intermediate (a first light the reflectance rounds re-solve, a Lambertian light
+        the bright-direction cast solves again); the final one is re-solved by `finished`."""
         o = light_options
         sol = bases.solve(ne, vis.cube, o.basis, o.levels_value, o.min_gain, o.face_resolution, o.sh_order,
-                          o.sh_nonnegative, on_level)
+                          o.sh_nonnegative, on_level, all_pixels)
         refined["solution"] = refined[("model", m.model)] = sol
         return sol
 
@@ -714,7 +717,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                 last = k == 1 or change < 10 * PART_TOL
                 if not last and not options.exact:
                     ne = with_scales(ne, albedo.scales)
-                    quick = bases.refit(ne, vis.cube, sol)
+                    quick = bases.refit(ne, vis.cube, sol, all_pixels=False)
                     if quick is not None:
                         sol = quick
                         continue
@@ -755,7 +758,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             else:  # the same rows under the new factors: their tree systems are kept per part
                 ne = with_scales(ne, albedo.scales, np.ones(len(albedo.scales)) if albedo.ks_scales is None else
                                  albedo.ks_scales)
-            quick = bases.refit(ne, vis.cube, first)
+            quick = bases.refit(ne, vis.cube, first, all_pixels=False)
             if quick is None:
                 sol, ne = solve_light_only(m)
             else:
@@ -784,8 +787,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # same smaller system, so that every round's errors are over the same rows
             if ("model", m.model) not in refined:
                 full_solve(m, systems.system(m))
+            # (on the fit rows alone: a round's light only feeds the next LM fit, and the chosen
+            # material's light is refined again on the whole sample: `refine_chosen`)
             ne = systems.system(m, ROUND_ROWS)
-            sol = bases.refit(ne, vis.cube, refined[("model", m.model)])
+            sol = bases.refit(ne, vis.cube, refined[("model", m.model)], all_pixels=False)
             if sol is not None:
                 return sol, ne
         ne = systems.system(m)
@@ -946,11 +951,17 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     sol, system, recast = refine_chosen(material, sol, system, recast)
     result.solution, result.context = sol, system
 
+    def finished(sol, system):
+        """The final light: re-solved on all pixels of the system it was solved on when it is an
+        intermediate one (`full_solve`)."""
+        return sol if system is None else bases.finish(system, vis.cube, sol)
+
     def relit_view(sol):
         return render(systems.vis, sol.light, material, albedo=None if albedo is None else albedo.values(),
                       specular=systems.specular_weight())
 
     sol, system, recast = cast_bright(sol, system, recast)
+    sol = finished(sol, system)
     relit = relit_view(sol)
     robust_info = robust_weights = None
     if options.robust and not options.exact:
@@ -1012,6 +1023,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             if albedo is not None:
                 albedo.scales, albedo.ks_scales = part_scales.get(id(sol), (albedo.scales, albedo.ks_scales))
             sol, system, recast = cast_bright(sol, system, recast)
+            sol = finished(sol, system)
             relit = relit_view(sol)
         robust_info.update(robust_counts(w, counted, bound, clipped, values, relit, usable))
         robust_weights = np.where(satisfied, 1.0, w)  # (a satisfied bound is not a down-weighted pixel)

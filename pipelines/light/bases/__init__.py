@@ -86,12 +86,15 @@ class LightOptions:
 
 
 def solve(ne, cube, basis: str = "wavelet", levels: int | str = "auto", min_gain: float = 0.01,
-          face_resolution: int | None = None, sh_order: int = 2, sh_nonnegative: bool = False, progress=None):
+          face_resolution: int | None = None, sh_order: int = 2, sh_nonnegative: bool = False, progress=None,
+          all_pixels: bool = True):
     """Solve the light in one basis on the normal equations `ne` -> `solution.LightSolution`.
 
     levels : "auto" (refine, or add lights, until the held-out error stops falling by `min_gain`)
         or a count of levels (wavelet, quadtree) / lights (points).
     progress : called with each refinement level's record.
+    all_pixels : False: a tree basis' light may stay the chosen level's, fitted on the exploration's
+        rows (an intermediate light; `finish` makes it the final one). The other bases ignore it.
     """
     info = BASES.get(basis)
     if info is None:
@@ -99,7 +102,20 @@ def solve(ne, cube, basis: str = "wavelet", levels: int | str = "auto", min_gain
     options = LightOptions(basis, "auto" if levels == "auto" else str(int(levels)), min_gain, face_resolution,
                            sh_order, sh_nonnegative)
     module = importlib.import_module(f"{__name__}.{info.module}")
+    if info.module == "tree":
+        return module.solve(ne, cube, options, progress, all_pixels)
     return module.solve(ne, cube, options, progress)
+
+
+def finish(ne, cube, solution):
+    """An intermediate light (`solve(all_pixels=False)`, `refit(all_pixels=False)`) re-solved on all
+    pixels of `ne`, the system it was solved on: the final light (others are returned as they are)."""
+    info = BASES.get(solution.basis)
+    if info is not None and info.module == "tree":
+        from .tree import finish as finish_tree
+
+        return finish_tree(ne, cube, solution)
+    return solution
 
 
 def replay(ne, cube, solution, levels: int | str = "auto", min_gain: float = 0.01, progress=None):
@@ -114,7 +130,7 @@ def replay(ne, cube, solution, levels: int | str = "auto", min_gain: float = 0.0
     return None
 
 
-def refit(ne, cube, solution):
+def refit(ne, cube, solution, all_pixels: bool = True):
     """`solution` re-solved on another system with its structure kept (a tree basis' tree, warm
     started), or solved again from scratch for the bases without one. Used when the transport
     changes but the model size should not (corrected visibility, a reflectance round)."""
@@ -122,5 +138,5 @@ def refit(ne, cube, solution):
     if info is not None and info.module == "tree":
         from .tree import refit as refit_tree
 
-        return refit_tree(ne, cube, solution)
+        return refit_tree(ne, cube, solution, all_pixels)
     return None

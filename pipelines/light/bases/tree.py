@@ -59,7 +59,8 @@ def _refine(tree: HaarTree, light: np.ndarray, coefficients: np.ndarray, basis: 
 
 
 def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: int | str = "auto",
-               min_gain: float = 0.01, patience: int = 1, progress=None, trees=None) -> LightSolution:
+               min_gain: float = 0.01, patience: int = 1, progress=None, trees=None,
+               all_pixels: bool = True) -> LightSolution:
     """The paper's coarse-to-fine solve (`wavelet`) or its quadtree twin.
 
     levels : "auto" (refine until the held-out error stops falling by `min_gain` for `patience`
@@ -67,6 +68,10 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
     trees : the levels' trees of an earlier solve, followed instead of refining while they last
         (`replay`); the level is chosen afresh and refinement goes on past the last one if the
         errors ask for it.
+    all_pixels : the chosen level re-solved on all pixels (the fit and the held-out ones, the whole
+        sample: the final light); without it the light is the chosen level's own, fitted on the
+        exploration's rows (an intermediate light: a first light a reflectance round re-solves, a
+        Lambertian light a bright-direction cast solves again), and `finish` re-solves it later.
     """
     if basis not in ("wavelet", "quadtree"):
         raise ValueError(f"solve_tree needs basis wavelet or quadtree, got {basis!r}")
@@ -111,17 +116,33 @@ def solve_tree(ne: LightSystem, cube: CubeMap, basis: str = "wavelet", levels: i
         tree = new_tree
     chosen = stopper.best_index if levels == "auto" else len(records) - 1
     best = records[chosen]
-    light, coeffs, info = best.light, best.coefficients, best.solver
     both = fit.combine(held)
-    if held.n_pixels > 0 or ne.explore is not None:  # re-solve the chosen tree on all pixels
-        P = haar.leaf_matrix(best.tree)
-        x, info = solve_nonnegative(both.project_tree(best.tree), _leaf_guess(best, P))
-        light = np.asarray(P @ x)
-        light[unobservable] = 0.0
-        coeffs = haar.leaf_values_to_coefficients(x, best.tree) if basis == "wavelet" else x
-    all_rmse = both.relative_rmse(light)
-    return LightSolution(basis, light, coeffs, records, chosen, all_rmse, info, time.perf_counter() - t_all,
-                         best.tree, {"unobservable_texels": int(unobservable.sum())}, unobservable)
+    sol = LightSolution(basis, best.light, best.coefficients, records, chosen, both.relative_rmse(best.light),
+                        best.solver, time.perf_counter() - t_all, best.tree,
+                        {"unobservable_texels": int(unobservable.sum()),
+                         "all_pixels": held.n_pixels == 0 and ne.explore is None}, unobservable)
+    return finish(ne, cube, sol) if all_pixels else sol
+
+
+def finish(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolution:
+    """The chosen level re-solved on all pixels of `ne` (the fit and held-out ones, the whole
+    sample), unless it already is (`solve_tree(all_pixels=...)`): the final light. The levels'
+    records and held-out errors stay (they were measured on lights fitted without the held-out
+    pixels)."""
+    if solution.details.get("all_pixels", True) or solution.tree is None:
+        return solution
+    t0 = time.perf_counter()
+    best = solution.levels[solution.chosen]
+    both = ne.fit.combine(ne.held_out)
+    P = haar.leaf_matrix(best.tree)
+    x, info = solve_nonnegative(both.project_tree(best.tree), _leaf_guess(best, P))
+    light = np.asarray(P @ x)
+    if solution.unobservable is not None:
+        light[solution.unobservable] = 0.0
+    coeffs = haar.leaf_values_to_coefficients(x, best.tree) if solution.basis == "wavelet" else x
+    return LightSolution(solution.basis, light, coeffs, solution.levels, solution.chosen, both.relative_rmse(light),
+                         info, solution.seconds + time.perf_counter() - t0, best.tree,
+                         {**solution.details, "all_pixels": True}, solution.unobservable)
 
 
 def replay(ne: LightSystem, cube: CubeMap, solution: LightSolution, levels: int | str = "auto",
@@ -141,15 +162,18 @@ def _leaf_guess(level: Level, P) -> np.ndarray:
     return (np.asarray(P.T @ level.light) / np.maximum(counts, 1)[:, None]) > 0
 
 
-def solve(ne: LightSystem, cube: CubeMap, options, progress=None) -> LightSolution:
-    return solve_tree(ne, cube, options.basis, options.levels_value, min_gain=options.min_gain, progress=progress)
+def solve(ne: LightSystem, cube: CubeMap, options, progress=None, all_pixels: bool = True) -> LightSolution:
+    return solve_tree(ne, cube, options.basis, options.levels_value, min_gain=options.min_gain, progress=progress,
+                      all_pixels=all_pixels)
 
 
-def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolution:
+def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution, all_pixels: bool = True) -> LightSolution:
     """The solution's tree re-solved on another system (the same pixels with corrected transport,
     or another material), warm-started from its light. As in `solve_tree`, the tree is solved on the
     fit pixels first, so that its held-out error is this system's (what `--reflectance auto` and the
-    rounds compare), then on all pixels; the refit level replaces the chosen one in the record."""
+    rounds compare), then on all pixels (`all_pixels`; without it the light stays the fit pixels'
+    one: an intermediate light, a reflectance round's, which the next LM fit and the final solve
+    replace); the refit level replaces the chosen one in the record."""
     t0 = time.perf_counter()
     # which texels no pixel sees is geometry (the same pixels): the refinement's, when it kept it
     unobservable = solution.unobservable if solution.unobservable is not None else observability(ne)[1]
@@ -166,7 +190,7 @@ def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolut
     rec = Level(old.index, tree.n_coefficients, fit_part.relative_rmse(x), _rmse(ne.held_out, light),
                 0.0, info, light, coeffs, tree)
     both = ne.fit.combine(ne.held_out)
-    if ne.held_out.n_pixels > 0:
+    if ne.held_out.n_pixels > 0 and all_pixels:
         x, info = solve_nonnegative(fit_part.combine(ne.held_out.project_tree(tree)), x > 0)
         light = np.asarray(P @ x)
         light[unobservable] = 0.0
@@ -176,5 +200,6 @@ def refit(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolut
     levels[solution.chosen] = rec
     return LightSolution(solution.basis, light, coeffs, levels, solution.chosen, both.relative_rmse(light),
                          info, solution.seconds + time.perf_counter() - t0, tree,
-                         {**solution.details, "unobservable_texels": int(unobservable.sum()), "refit": True},
+                         {**solution.details, "unobservable_texels": int(unobservable.sum()), "refit": True,
+                          "all_pixels": bool(all_pixels or ne.held_out.n_pixels == 0)},
                          unobservable)
