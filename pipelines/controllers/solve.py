@@ -795,7 +795,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             if sol is not None:
                 return sol, ne
         ne = systems.system(m)
-        return full_solve(m, ne), ne
+        # (a specular light here is a round's on the exact route: it feeds the next LM fit, so it is
+        # re-solved on all pixels, as the sampled route's rounds are)
+        return full_solve(m, ne, m.specular), ne
 
     def round_light(m: Material):
         """`solve_light` for the reflectance fits: a specular round's light on the sampled route is a
