@@ -43,6 +43,9 @@ SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart
 # more, and an alternation round stops at a 1e-3 change of the error); tighter ones cost evaluations
 # (teapot_sun_phong's plastic rounds: 15-29 evaluations at 1e-10 / 1e-12)
 LM_TOLERANCES = {"xtol": 1e-6, "ftol": 1e-8, "gtol": 1e-8}
+# auto's probe skips its LM when the scan's best ks is below this many sigma (`fit_specular`'s
+# `screen`): LM could not bring it to the 3 sigma a significant term needs
+PROBE_SCREEN = 2.0
 ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by less than this
 RHO_FLOOR = 0.8  # `_heads_for`: the remaining decrease taken as at least 4x the last step
 HELD_OUT_MARGIN = 0.02  # an alternation's round whose held-out error is this much above the lowest is not kept
@@ -282,7 +285,8 @@ def _linear_fit(data: SpecularData, shininess: float) -> tuple[np.ndarray, float
     return np.concatenate([kd, ks]), sq
 
 
-def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200, guard: bool = True) -> SpecularFit:
+def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200, guard: bool = True,
+                 screen: float | None = None) -> SpecularFit:
     """Fit kd (RGB), ks (RGB) and n with the light fixed, by Levenberg-Marquardt in (kd, ks, log n),
     then move ks's colour into the light (see SpecularFit).
 
@@ -293,6 +297,14 @@ def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200
     construction) is returned with a message saying so. Without `guard` (a start that is already
     an optimum of a nearby problem, e.g. the previous alternation round's) the scan runs only if LM
     leaves the feasible region. Never returns NaNs.
+
+    `screen` (with `guard`; auto's probe, which only asks whether ks is significant): when the scan's
+    best ks is below `screen` one-sigma errors (the same Jacobian estimate as at the end), LM is not
+    run and the scan's best is returned. LM's optimum lies within half the scan's step of a scan
+    point (a factor 2^0.5 in n; cos^n and cos^(1.41 n) lobes correlate at 0.985 over the
+    hemisphere), so it could raise ks / sigma by a few per cent, not from below 2 to the 3 that
+    `ks_significant` asks. Not when the start fits better than every scan point. On a diffuse scene under a
+    sky (spot_overcast) the LM it spares wandered 37 evaluations over an n that ks ~ 0 leaves free.
     """
     t0 = time.perf_counter()
     f = data.fit
@@ -326,6 +338,15 @@ def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200
                                 max_nfev=max_evaluations, **LM_TOLERANCES)
         return res.x
 
+    def covariance(x):
+        """One-sigma errors from the Jacobian at x (conditional on the light): (cov, sd, sd of mean ks)."""
+        J = jacobian(x)
+        r = residual(x)
+        dof = max(len(r) - 7, 1)
+        cov = (r @ r / dof) * np.linalg.pinv(J.T @ J)
+        return cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), float(np.sqrt(max(cov[3:6, 3:6].sum(), 0.0)) / 3)
+
+    screened = None  # the scan's best point's covariance, when the screen stops there
     start_n = float(start.shininess)
     if not start_n > 0:
         raise FitError(f"the start shininess must be > 0, got {start_n}")
@@ -344,9 +365,14 @@ def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200
         (coef, sq_best), n_best = min(scan, key=lambda t: t[0][1])
         xs = np.array([*coef, np.log(n_best)])
         sq_start = float(np.sum(residual(x0) ** 2)) * scale**2 if _valid(x0) else np.inf
+        at_scan = covariance(xs) if screen is not None else None
         if not np.any(coef[3:6] > 0) and sq_best <= sq_start:
             x, path = xs, "scan"
             message = "no specular term fits at any n of the scan (ks = 0): the data support no highlight"
+        elif at_scan is not None and sq_best <= sq_start and float(np.mean(coef[3:6])) < screen * at_scan[2]:
+            x, path, screened = xs, "scan", at_scan
+            message = (f"the scan's best (n = {n_best:g}) has ks {float(np.mean(coef[3:6])):.3g} +- {at_scan[2]:.2g}, "
+                       f"below {screen:g} sigma: no significant specular term within reach of LM (not run)")
         else:
             from_scan = sq_best < sq_start
             x = lm(xs if from_scan else x0)
@@ -363,13 +389,7 @@ def fit_specular(data: SpecularData, start: Material, max_evaluations: int = 200
                     message = f"LM did not improve on the scan's best n = {n_best:g}: kept that (within a factor 2^0.5)"
     n = float(np.exp(x[6]))
     kd, ks_rgb = np.maximum(x[:3], 0.0), np.maximum(x[3:6], 0.0)
-    # uncertainties from the Jacobian at the optimum (conditional on the light)
-    J = jacobian(x)
-    r = residual(x)
-    dof = max(len(r) - 7, 1)
-    cov = (r @ r / dof) * np.linalg.pinv(J.T @ J)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    sd_ks_mean = float(np.sqrt(max(cov[3:6, 3:6].sum(), 0.0)) / 3)
+    cov, sd, sd_ks_mean = covariance(x) if screened is None else screened
     sigma = {"kd": sd[:3].tolist(), "ks_rgb": sd[3:6].tolist(), "ks": sd_ks_mean, "n": float(n * sd[6]),
              "log_n": float(sd[6])}
     ks = float(ks_rgb.mean())
@@ -497,13 +517,13 @@ def lm_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, material:
                          lobe=lobe)
 
 
-def lm_fit(data, start: Material, guard: bool = True) -> "SpecularFit":
-    """`fit_specular`, or `plastic_fit.fit_plastic` for plastic's data."""
+def lm_fit(data, start: Material, guard: bool = True, screen: float | None = None) -> "SpecularFit":
+    """`fit_specular`, or `plastic_fit.fit_plastic` for plastic's data (which has no `screen`)."""
     if data.model == PLASTIC:
         from .plastic_fit import fit_plastic
 
         return fit_plastic(data, start, guard=guard)
-    return fit_specular(data, start, guard=guard)
+    return fit_specular(data, start, guard=guard, screen=screen)
 
 
 def _extrapolate(fitted: list[np.ndarray], material: Material) -> Material:
@@ -708,7 +728,7 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
                        lobe=_now(lobe))
     except FitError as exc:
         return stay(f"lambert: {exc}", [r0])
-    probe = lm_fit(data, start)
+    probe = lm_fit(data, start, screen=PROBE_SCREEN)
 
     def fitted_under(material, light):
         """`material`'s LM fit with `light` fixed, on the probe's rows (None if its rows cannot fit it)."""
