@@ -41,7 +41,7 @@ def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, sup
         f.create_dataset("texels/solid_angle", data=cube.solid_angles)
         chunk_rows = max(1, min(len(samples), rows_per_chunk))
         ds = f.create_dataset("visibility", shape=(len(samples), width), dtype=np.uint8,
-                              chunks=(chunk_rows, width), compression="gzip", compression_opts=4,
+                              chunks=(chunk_rows, width), compression="gzip", compression_opts=1,
                               shuffle=False)
         a = 0
         for block in chunks:
