@@ -339,3 +339,52 @@ def test_keeping_only_the_chosen_models_transport_drops_the_others_and_rebuilds_
     tr.keep_only(Material())  # lambert chosen: no lobe kept
     assert tr._specular == {} and tr.diffuse().rows is chosen.D.rows
     np.testing.assert_array_equal(tr.part(plastic, photo, weights, len(rows)).D.rows, coated.D.rows)
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("material", [
+    Material(kd=(0.9, 0.7, 0.5), ks=(0.4, 0.4, 0.4), shininess=30.0, model="blinn-phong"),
+    Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2),
+], ids=["blinn-phong", "plastic"])
+def test_lobe_pieces_give_the_system_of_any_ks_over_kd(mitsuba_scene, precision, material):
+    """`rows.lobe_pieces` (what a round's ks / kd_c search re-solves the light on): channel c's system
+    of the same rows under kd_c and ks is kd_c^2 (DD + t (X + X') + t^2 SS), kd_c (hD_c + t hS_c) with
+    t = ks / kd_c, for a fit part and for its union with the held-out one; rows that are not of one
+    uniform glossy material (a per-row albedo, parts, no lobe) have none."""
+    from pipelines.light.rows import lobe_pieces
+
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(11)
+    rows = rng.permutation(vis.n_pixels)[:500]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = rng.uniform(0.5, 2.0, len(rows))
+    tr, ta, tb = TransportRows(vis, rows), TransportRows(vis, rows[:300]), TransportRows(vis, rows[300:])
+    tree = _trees(vis.cube)[2]
+    a = ta.part(material, photo[:300], weights[:300], 5000)
+    b = tb.part(material, photo[300:], weights[300:], 2000)
+    if precision == "single":
+        a = a.head(a.n_rows, "single")
+    for part in (a, a.combine(b)):
+        pieces = lobe_pieces(part, tree)
+        for kd, ks in (((0.9, 0.6, 0.3), 0.5), ((0.2, 0.5, 1.0), 2.0)):
+            m = Material(kd=kd, ks=(ks,) * 3, shininess=material.shininess, model=material.model,
+                         roughness=material.roughness)
+            direct = ta.part(m, photo[:300], weights[:300], 5000)
+            direct = direct if precision == "double" else direct.head(direct.n_rows, "single")
+            if part is not a:
+                direct = direct.combine(tb.part(m, photo[300:], weights[300:], 2000))
+            system = direct.project_tree(tree)
+            G = [system.gram(c) for c in range(3)]
+            for c in range(3):
+                t = ks / kd[c]
+                want_G = kd[c] ** 2 * (pieces["DD"] + t * (pieces["X"] + pieces["X"].T) + t * t * pieces["SS"])
+                want_h = kd[c] * (pieces["hD"][:, c] + t * pieces["hS"][:, c])
+                tol = 1e-9 if precision == "double" else 1e-5
+                assert np.abs(G[c] - want_G).max() <= tol * np.abs(want_G).max()
+                h = np.asarray(system.h)[:, c]
+                assert np.abs(h - want_h).max() <= tol * np.abs(want_h).max()
+            np.testing.assert_allclose(pieces["bb"], system.bb, rtol=1e-12)
+    assert lobe_pieces(tr.part(Material(kd=(0.9, 0.7, 0.5)), photo, weights, 5000), tree) is None
+    assert lobe_pieces(tr.part(material, photo, weights, 5000, albedo=rng.uniform(0.5, 1.0, (500, 3))), tree) is None
+    assert lobe_pieces(tr.part(material, photo, weights, 5000, albedo=np.ones((500, 3)),
+                               group=rng.integers(0, 2, 500), scales=np.ones((2, 3))), tree) is None

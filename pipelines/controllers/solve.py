@@ -35,6 +35,7 @@ EXPLORE_ROWS = 8192  # refinement levels are chosen on this many of the fit samp
 PROBE_ROWS = 2048  # --reflectance auto probes a specular term on this many fit rows (and half as many held out)
 LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of them where highlights are)
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
+RATIO_MIN_DROP = 1e-4  # a round's ks / kd searched with its light re-solved is kept if it lowers the residual this much
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
 ROBUST_ROUNDS = 3  # the robust pass: weights -> light (and reflectance) again, at most this many times
@@ -793,11 +794,40 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             ne = systems.system(m, ROUND_ROWS)
             sol = bases.refit(ne, vis.cube, refined[("model", m.model)])
             if sol is not None:
+                last_round.update(solution=sol, system=ne)
                 return sol, ne
         ne = systems.system(m)
         # (a specular light here is a round's on the exact route: it feeds the next LM fit, so it is
         # re-solved on all pixels, as the sampled route's rounds are)
         return full_solve(m, ne, m.specular), ne
+
+    last_round: dict = {}  # the last reflectance round's light and its (sampled) system
+
+    def lobe_ratio(m: Material, sol):
+        """A glossy round's kd colour and ks with the light re-solved for each (`reflectance.lobe_ratio`,
+        on the round's tree and fit rows), and its light: (material, solution, None, what was found), or None when the
+        round's system is not at hand (the exact route; parts and textures, whose factors are fitted
+        per part) or it does not lower the round's fit error."""
+        from ..light.rows import lobe_pieces
+
+        if albedo is not None or options.exact or not m.specular or getattr(sol, "tree", None) is None:
+            return None
+        # the rows the round's light was solved on (a candidate's first light, solved before the
+        # others', on the same sample of rows built again; its lobe's transport is kept)
+        system = last_round["system"] if last_round.get("solution") is sol else systems.system(m, ROUND_ROWS)
+        last_round.clear()  # (the system's transport rows go once the pieces are out: memory)
+        pieces = lobe_pieces(system.fit, sol.tree)
+        system = None
+        if pieces is None:
+            return None
+        m2, info = rf.lobe_ratio(pieces, m, material.kd)
+        if not info["residual_drop"] > RATIO_MIN_DROP:
+            return None
+        sol2, ne2 = round_light(m2)
+        last_round.clear()
+        if not sol2.fit_rmse < sol.fit_rmse:
+            return None
+        return m2, sol2, ne2, info
 
     def round_light(m: Material):
         """`solve_light` for the reflectance fits: a specular round's light on the sampled route is a
@@ -894,12 +924,12 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                                    rows=lm_rows, probe_rows=probe_rows,
                                    plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
                                    note=progress.note, albedo=current_albedo, per_part=decide_glossy,
-                                   lobe=systems.specular_weight)
+                                   lobe=systems.specular_weight, ratio=lobe_ratio)
             else:
                 decided = decide_given(start)
                 result = rf.alternate(vis, values, start, round_light, fit_use(), held, material.kd,
                                       reflectance.max_rounds, progress=on_round, rows=lm_rows, albedo=current_albedo,
-                                      lobe=systems.specular_weight)
+                                      lobe=systems.specular_weight, ratio=lobe_ratio)
                 if decided is not None:
                     result.candidates["parts"] = decided
     except rf.FitError as exc:

@@ -556,6 +556,34 @@ class UnionPart:
         return UnionPart(tuple(p.with_scales(scales, ks_scales) for p in self.parts))
 
 
+def lobe_pieces(part, tree: HaarTree) -> dict | None:
+    """The leaf-space pieces of a uniform glossy material's rows on `tree`, for the ratio t_c =
+    ks / kd_c of each channel c: with the light absorbing kd_c (it is only known as kd_c L_c),
+    channel c renders kd_c (D + t_c S) L_c, and its normal equations are G(t) = DD + t (X + X') +
+    t^2 SS, h_c(t) = hD_c + t hS_c (weights sqrt(w) applied), with bb_c the targets' squared sum.
+    `part`: a `RowsPart` or a `UnionPart` of them (summed). None when a part has no specular
+    transport or is not uniform (a per-row kd: textures; rows grouped by part; a specular weight
+    per row): those have their own factors (`model.parts`)."""
+    parts = part.parts if isinstance(part, UnionPart) else (part,)
+    out = None
+    for p in parts:
+        if not isinstance(p, RowsPart) or p.S is None or np.ndim(p.kd) == 2 or p.group is not None:
+            return None
+        dtype = np.float64 if p.precision == "double" else np.float32
+        sw = np.sqrt(p.w)
+        base = p.D.leaf_sums(tree).astype(dtype)
+        base *= sw.astype(dtype)[:, None]
+        lobe = p.S.leaf_sums(tree).astype(dtype)
+        lobe *= sw.astype(dtype)[:, None]
+        b = p.b * sw[:, None]
+        C = b.shape[1]
+        piece = {"DD": _gram(base), "X": (base.T @ lobe).astype(np.float64), "SS": _gram(lobe),
+                 "hD": np.column_stack([_rhs(base, b[:, c]) for c in range(C)]),
+                 "hS": np.column_stack([_rhs(lobe, b[:, c]) for c in range(C)]), "bb": np.asarray(p.bb, np.float64)}
+        out = piece if out is None else {k: out[k] + piece[k] for k in out}
+    return out
+
+
 def with_scales(system, scales: np.ndarray, ks_scales: np.ndarray | None = None):
     """A sampled `LightSystem` of rows grouped by part with other part factors (and specular weights,
     `RowsPart.group_ks`) (its tree systems kept)."""
