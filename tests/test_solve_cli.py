@@ -802,9 +802,10 @@ def test_default_solve_fits_the_reflectance_and_stays_lambertian(solved):
 
 
 def test_forced_blinn_phong_alternates_and_reports_rounds(solved, solved_copy):
-    """--reflectance blinn-phong fits even a diffuse scene: the rounds are recorded, ks falls towards
-    0 round by round (measured 0.2 -> 0.018 of kd after 7 rounds, n -> 1: the lobe turns into a
-    second diffuse term) and the relit error ends where the Lambertian one is (3.84 vs 3.83 %)."""
+    """--reflectance blinn-phong fits even a diffuse scene: the rounds are recorded, ks falls to 0
+    (measured ks / kd 0.2 -> 0.0125 at round 0, the ratio search's bound, 0.001 at round 1, 0 at
+    round 2, n -> 1: the lobe turns into a second diffuse term) and the relit error ends where the
+    Lambertian one is."""
     err = ok(invoke(solved_copy, "solve", "--resolution", RES, "--reflectance", "blinn-phong",
                     "--ks", "0.2", "0.2", "0.2", "--shininess", "10"))
     assert "solve: reflectance blinn-phong: start blinn-phong kd 1 1 1, ks 0.2, n 10" in err
@@ -812,9 +813,13 @@ def test_forced_blinn_phong_alternates_and_reports_rounds(solved, solved_copy):
     refl = json.loads((solved_copy / "out" / "reflectance.json").read_text())
     assert refl["mode"] == "blinn-phong" and refl["model"] == "blinn-phong"
     rounds = refl["rounds"]
-    assert 3 <= len(rounds) <= 9 and rounds[0]["material"]["ks"] == [0.2, 0.2, 0.2]
+    assert 2 <= len(rounds) <= 9
     assert all("lm" in r for r in rounds[1:])
-    assert refl["ks"][0] < 0.05 < rounds[1]["material"]["ks"][0]
+    # round 0's light was solved under the start (ks / kd 0.2); kd's colour and ks searched with the
+    # light re-solved (`lobe_ratio`) take ks most of the way down at once
+    assert rounds[0]["ratio"]["ratio_before"] == pytest.approx([0.2, 0.2, 0.2])
+    assert rounds[0]["material"]["ks"][0] < 0.1
+    assert refl["ks"][0] < 0.05
     for key in ("kd", "ks", "n"):
         assert key in refl["uncertainty"]
     fitted = _report(solved_copy)["relit"]["relative_rmse_vs_photo"]

@@ -444,10 +444,10 @@ class Round:
     # "probe": auto's probe (LM with round 0's light fixed, no light solve): its errors are over the
     # probe's rows, compared with Lambert's over the same rows (`lambert_rmse_same_rows`), not with round 0's
     kind: str = "round"
+    lambert_rmse_same_rows: float | None = None
     # kd's colour and ks found with the light re-solved after the round's light (`lobe_ratio`): the
     # ratios ks / kd_c before and after and the drop of the round rows' residual (None: not applied)
     ratio: dict | None = None
-    lambert_rmse_same_rows: float | None = None
 
     def summary(self) -> dict:
         out = {"round": self.index, "kind": self.kind, "material": self.material.to_json(), "fit_rmse": self.fit_rmse,
