@@ -36,6 +36,7 @@ PROBE_ROWS = 2048  # --reflectance auto probes a specular term on this many fit 
 LM_ROWS = 8192  # the reflectance rounds' LM fits this many rows (a quarter of them where highlights are)
 ROUND_ROWS = 8192  # and their light is re-solved on this many of the fit sample's rows (and every held-out row)
 RATIO_MIN_DROP = 1e-4  # a round's ks / kd searched with its light re-solved is kept if it lowers the residual this much
+RATIO_CONVERGED = 1e-3  # and is not searched again in that model's later rounds once a step lowered it by less
 BRIGHT_SHARE_SQ = 1e-3  # directions are cast exactly until the rest's squared power shares sum below this
 MAX_BRIGHT = 64
 ROBUST_ROUNDS = 3  # the robust pass: weights -> light (and reflectance) again, at most this many times
@@ -802,29 +803,38 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         return full_solve(m, ne, m.specular), ne
 
     last_round: dict = {}  # the last reflectance round's light and its (sampled) system
+    ratio_drops: dict = {}  # model -> the residual drop of its last ratio step (`lobe_ratio`)
 
     def lobe_ratio(m: Material, sol):
         """A glossy round's kd colour and ks with the light re-solved for each (`reflectance.lobe_ratio`,
         on the round's tree and fit rows), and its light: (material, solution, None, what was found), or None when the
         round's system is not at hand (the exact route; parts and textures, whose factors are fitted
-        per part) or it does not lower the round's fit error."""
+        per part), it does not lower the round's fit error, or the model's step before lowered the
+        residual by less than RATIO_CONVERGED (the ratio has settled: later rounds move the lobe)."""
         from ..light.rows import lobe_pieces
 
         if albedo is not None or options.exact or not m.specular or getattr(sol, "tree", None) is None:
             return None
+        if ratio_drops.get(m.model, 1.0) < RATIO_CONVERGED:
+            return None  # (its last step hardly moved it: the LM's ks under that light is the light's own)
         # the rows the round's light was solved on (a candidate's first light, solved before the
         # others', on the same sample of rows built again; its lobe's transport is kept)
+        t0 = time.perf_counter()
         system = last_round["system"] if last_round.get("solution") is sol else systems.system(m, ROUND_ROWS)
         last_round.clear()  # (the system's transport rows go once the pieces are out: memory)
         pieces = lobe_pieces(system.fit, sol.tree)
         system = None
         if pieces is None:
             return None
+        t1 = time.perf_counter()
         m2, info = rf.lobe_ratio(pieces, m, material.kd)
+        t2 = time.perf_counter()
+        ratio_drops[m.model] = info["residual_drop"]
         if not info["residual_drop"] > RATIO_MIN_DROP:
             return None
         sol2, ne2 = round_light(m2)
         last_round.clear()
+        info["seconds"] = {"pieces": t1 - t0, "search": t2 - t1, "light": time.perf_counter() - t2}
         if not sol2.fit_rmse < sol.fit_rmse:
             return None
         return m2, sol2, ne2, info
