@@ -814,8 +814,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         from ..light.rows import lobe_pieces
 
         if albedo is not None or options.exact or not m.specular or getattr(sol, "tree", None) is None:
+            last_round.clear()
             return None
         if ratio_drops.get(m.model, 1.0) < RATIO_CONVERGED:
+            last_round.clear()
             return None  # (its last step hardly moved it: the LM's ks under that light is the light's own)
         # the rows the round's light was solved on (a candidate's first light, solved before the
         # others', on the same sample of rows built again; its lobe's transport is kept)
@@ -945,6 +947,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     except rf.FitError as exc:
         raise InputError(f"cannot fit the reflectance: {exc}", photo_path,
                          "use --reflectance lambert, or check the photo and the pose") from None
+    last_round.clear()  # (a round's transport rows: memory)
     material, sol, system = result.material, result.solution, result.context
     systems.keep_only(material)
     if albedo is not None:  # the chosen light's own scales (a later round may have refitted them)
