@@ -8,7 +8,8 @@ and the controls; the numbers asserted here are that table's with a margin.
 Each case is a whole solve at R = 32 (1.5-4 min on 2 cores, by the load): slow.
 
 Not asserted, because not met (README, "The microfacet dielectric plastic"): teapot_smoothplastic_overcast
-(the alternation's ks creeps and alpha stays ~0.23 instead of smooth). Since each specular model's
+(alpha stays ~0.2 instead of smooth; its diffuse probe is 0.60 % since kd's colour and ks are searched
+with the light re-solved, 17.7 % before, its glossy probe 12.1 %). Since each specular model's
 first light explores the levels under that model (not on the Lambertian light's tree), auto chooses
 plastic on teapot_plastic_sun too (it chose Blinn-Phong n 501 before), now asserted; on the others
 that change moved the numbers both ways (benchmarks/RESULTS.md, "Glossy materials": the bounds
@@ -35,16 +36,20 @@ SCENES = Path(__file__).parent / "data" / "scenes"
 # scene: (diffuse probe bound, glossy probe bound, alpha's relative tolerance); measured in
 # benchmarks/RESULTS.md (materials)
 CASES = {
-    # measured 2.15 %, 5.15 %; alpha 0.316 (0.3), held-out 0.77 % (before the per-model refinement: 0.80 %,
-    # 4.33 %, alpha 0.265). Under an overcast sky a rough lobe of the smooth sky is nearly a diffuse term:
-    # the light and ks / kd trade off within what the photo tells (its held-out error is 0.77 %)
-    "bunny_plastic_overcast": (0.03, 0.065, 0.15),
-    "spot_plastic_sun": (0.02, 0.05, 0.15),  # measured 0.56 %, 2.52 %; alpha 0.151 (0.15) (before 1.30 %, 3.16 %)
-    # measured 1.64 %, 10.32 %; alpha 0.129 (0.1), +29 % (before: 5.79 %, 12.87 %, alpha 0.093). At R = 32
-    # the forward model with the true light and material is ~9 % off Mitsuba's render here
-    "suzanne_plastic_sun": (0.025, 0.13, 0.35),
-    # measured 3.37 %, 2.94 %; alpha 0.037 (0.05), -25 % (before: auto chose Blinn-Phong, 7.39 %, 20.31 %)
-    "teapot_plastic_sun": (0.045, 0.04, 0.35),
+    # measured 1.50 %, 4.63 %; alpha 0.295 (0.3) (before `lobe_ratio`: 2.13 %, 4.75 %, alpha
+    # 0.316; before the per-model refinement: 0.80 %, 4.33 %, alpha 0.265). Under an overcast sky a rough
+    # lobe of the smooth sky is nearly a diffuse term: the light and ks / kd trade off within what the
+    # photo tells
+    "bunny_plastic_overcast": (0.02, 0.065, 0.15),
+    "spot_plastic_sun": (0.02, 0.05, 0.15),  # measured 0.52 %, 2.49 %; alpha 0.151 (0.15) (before 0.56 %, 2.54 %)
+    # measured 1.51 %, 11.66 %; alpha 0.134 (0.1), +34 % since kd's colour and ks are searched with the
+    # light re-solved (`lobe_ratio`; before it: 1.64 %, 10.32 %, alpha 0.129; before the per-model
+    # refinement: 5.79 %, 12.87 %, alpha 0.093). At R = 32 the forward model with the true light and
+    # material is ~9 % off Mitsuba's render here
+    "suzanne_plastic_sun": (0.025, 0.13, 0.40),
+    # measured 0.30 %, 1.79 %; alpha 0.037 (0.05), -27 % (before `lobe_ratio`: 3.37 %, 2.94 %; before the
+    # per-model refinement auto chose Blinn-Phong, 7.39 %, 20.31 %)
+    "teapot_plastic_sun": (0.02, 0.03, 0.35),
 }
 
 
