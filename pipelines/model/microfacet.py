@@ -130,6 +130,60 @@ def smith_g1(tan2, alpha, distribution: str, derivative: bool = False):
     return g, np.where(big, 0.0, -a * dg_da)  # da / d log alpha = -a
 
 
+def smith_g1_f32(tan2: np.ndarray, alpha: float, distribution: str, derivative: bool = False):
+    """`smith_g1` for float32 blocks of (pixel, texel) pairs, in a few in-place passes (the fit's and
+    the render's inner loop: `smith_g1`'s temporaries cost it 6x as much); the same values to float32
+    rounding. Beckmann's a = 1 / (alpha tan) is clamped at its cut (1.6, where the rational fit is
+    1.00006 and g is set to 1), so that tan 0 needs no special case."""
+    f32 = np.float32
+    t = np.asarray(tan2, f32)
+    if distribution == "ggx":
+        xy = t * f32(alpha * alpha)
+        s = xy + f32(1.0)
+        np.sqrt(s, out=s)
+        g = s + f32(1.0)
+        np.divide(f32(2.0), g, out=g)
+        if not derivative:
+            return g
+        # dG1 / d log alpha = -g^2 / 2 xy / s
+        xy /= s
+        xy *= g
+        xy *= g
+        xy *= f32(-0.5)
+        return g, xy
+    a = np.sqrt(t)
+    a *= f32(alpha)
+    with np.errstate(divide="ignore"):
+        np.divide(f32(1.0), a, out=a)  # (tan 0: a = inf, clamped)
+    np.minimum(a, f32(1.6), out=a)
+    num = a * f32(2.181)
+    num += f32(3.535)
+    den = a * f32(2.577)
+    den += f32(2.276)
+    if derivative:  # dg/da = ((3.535 + 4.362 a) den - num (2.276 + 5.154 a)) / den^2 (num, den before x a)
+        dnum = a * f32(4.362)
+        dnum += f32(3.535)
+        dden = a * f32(5.154)
+        dden += f32(2.276)
+    num *= a
+    den *= a
+    den += f32(1.0)
+    if derivative:
+        dnum *= den
+        dden *= num
+        dnum -= dden
+        dnum /= den
+        dnum /= den
+        dnum *= a
+        dnum *= f32(-1.0)  # da / d log alpha = -a
+    num /= den
+    cut = a >= f32(1.6)
+    num[cut] = 1.0  # (the fit is 1.00006 there: `smith_g1`'s value exactly)
+    if derivative:
+        dnum[cut] = 0.0
+    return (num, dnum) if derivative else num
+
+
 def ndf(cos_h, alpha, distribution: str):
     """The distribution D(h) (per unit solid angle of h) for cos theta_h = cos_h."""
     c2 = np.asarray(cos_h, np.float64) ** 2
@@ -314,6 +368,18 @@ def specular_albedo_interpolated(alpha: float, eta: float, distribution: str) ->
     return (1.0 - f) * lo + f * hi, (hi - lo) / _LOG_ALPHA_STEP
 
 
+def diffuse_reflectance_interpolated(alpha: float, eta: float, distribution: str) -> tuple[float, float]:
+    """Fdr (the coating's reflectance of the diffuse base's light from below, as `coating`) at alpha
+    (> 0), linear in log alpha between cached tables on the grid of `specular_albedo_interpolated`,
+    and its derivative with respect to log alpha."""
+    x = np.log(max(float(alpha), MIN_ALPHA)) / _LOG_ALPHA_STEP
+    k = int(np.floor(x))
+    f = x - k
+    lo, hi = (float(np.mean(_reflectance_cached(float(np.exp(j * _LOG_ALPHA_STEP)), 1.0 / float(eta), distribution)
+                            * _MU) * 2.0) for j in (k, k + 1))
+    return (1.0 - f) * lo + f * hi, (hi - lo) / _LOG_ALPHA_STEP
+
+
 GRAZING_NV = 0.2  # views with N.v below this get the lobe's energy cap (`grazing_cap`)
 
 
@@ -390,6 +456,23 @@ def lobe_values(x2, y2, wx, wy, alpha: float, distribution: str, out=None, deriv
     along the slopes (x2, y2) (float32 blocks), into `out`; with `derivative_out`, also
     dDn / d log alpha there."""
     a2 = np.float32(alpha * alpha)
+    if derivative_out is None and out is None:  # (the fit's and the render's inner loop: in place)
+        ax = wx + a2
+        ay = wy + a2
+        norm = ax * ay
+        np.sqrt(norm, out=norm)
+        norm *= np.float32(np.pi)
+        q = np.divide(x2, ax, out=ax)
+        q += np.divide(y2, ay, out=ay)
+        if distribution == "ggx":
+            q += np.float32(1.0)
+            q *= q
+            q *= norm
+            return np.divide(np.float32(1.0), q, out=q)
+        np.negative(q, out=q)
+        np.exp(q, out=q)
+        q /= norm
+        return q
     ax = wx + a2
     ay = wy + a2
     q = x2 / ax

@@ -15,6 +15,13 @@ and kd = kd' / b(alpha) at the end; t's derivative with respect to log alpha is 
 difference (the tables cost milliseconds), the lobe's is analytic. The IOR and the distribution are
 the start's (given, or 1.49 and ggx). A scan over alpha (kd', ks >= 0 exact at each alpha) guards the
 start, as the Blinn-Phong fit's scan over n does.
+
+kd' and ks enter linearly: at a given alpha their best values (>= 0) are a 2-column NNLS per channel
+(`_linear_fit`), so the fit is a search in log alpha alone over that profile (variable projection:
+`method="profile"`, the default; parabolic interpolation in a bracket with Brent's safeguards, each
+step one evaluation without derivatives: ~5-10 per fit where LM took 12-14 with them). LM over all
+seven parameters (`method="lm"`) reaches the same optimum and is kept as the reference; the
+derivatives serve both for the one-sigma uncertainties.
 """
 
 from __future__ import annotations
@@ -35,6 +42,9 @@ SCAN_ALPHA = (0.01, 0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6)  # the start's guard
 MAX_PAIRS = 24_000_000  # (pixel, lit texel) pairs held (6 float32 arrays: ~580 MB)
 _BLOCK = 256
 _DLOG = 0.02  # the tables' central difference in log alpha
+PROFILE_STEP = np.log(1.1)  # the profile search's first bracket around its start (log alpha)
+PROFILE_XTOL = 1e-4  # and where it stops (log alpha: alpha to 0.01 %; its sigma is ~1e-3 and more)
+PROFILE_MAX = 40  # evaluations a search may take (it needs ~5 from a bracket)
 
 
 @dataclass
@@ -127,7 +137,7 @@ class PlasticData:
                 sl = slice(s, min(P, s + _BLOCK))
                 dDn = np.empty_like(self.x2[sl]) if derivative else None
                 e = mf.lobe_values(self.x2[sl], self.y2[sl], self.wx[sl], self.wy[sl], a, dist, derivative_out=dDn)
-                g = mf.smith_g1(self.t2d[sl], a, dist, derivative=derivative)
+                g = mf.smith_g1_f32(self.t2d[sl], a, dist, derivative=derivative)
                 if derivative:
                     g, dg = g
                     dDn *= g
@@ -236,6 +246,14 @@ def base_scale(alpha: float, ior: float, distribution: str) -> float:
     return mf.coating(float(alpha), float(ior), distribution).base_scale
 
 
+def base_scale_slope(alpha: float, ior: float, distribution: str) -> float:
+    """d log b / d log alpha, for the uncertainties only: b = 1 / (eta^2 (1 - Fdr)), with Fdr's
+    slope between the cached tables around alpha (`microfacet.diffuse_reflectance_interpolated`), not two
+    more quadratures (~0.1-0.3 s each) per fit."""
+    fdr, dfdr = mf.diffuse_reflectance_interpolated(alpha, ior, distribution)
+    return float(dfdr / max(1.0 - fdr, 1e-12))
+
+
 def _linear_fit(data: PlasticData, alpha: float):
     """Best kd' (3) and ks (3) >= 0 at a fixed alpha (per channel a 2-column NNLS) and the squared
     residual over the fit rows."""
@@ -252,9 +270,95 @@ def _linear_fit(data: PlasticData, alpha: float):
     return coef, sq
 
 
-def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, guard: bool = True):
+class _Profile:
+    """The fit's squared residual at the best kd', ks >= 0 of each log alpha (`_linear_fit`),
+    memoised, with the number of evaluations."""
+
+    def __init__(self, data: PlasticData, lo: float, hi: float):
+        self.data, self.lo, self.hi = data, lo, hi
+        self.memo: dict = {}
+
+    def __call__(self, la: float) -> float:
+        return self.at(la)[1]
+
+    def at(self, la: float):
+        la = float(np.clip(la, self.lo, self.hi))
+        if la not in self.memo:
+            self.memo[la] = _linear_fit(self.data, float(np.exp(la)))
+        return self.memo[la]
+
+    def bracket(self, la0: float) -> tuple[float, float]:
+        """An interval of log alpha around a local minimum, from la0: downhill in steps that double
+        from PROFILE_STEP until the profile rises again (or alpha's range ends)."""
+        la0 = float(np.clip(la0, self.lo, self.hi))
+        f0 = self(la0)
+        step = PROFILE_STEP
+        for direction in (1.0, -1.0):
+            la1 = float(np.clip(la0 + direction * step, self.lo, self.hi))
+            if la1 != la0 and self(la1) < f0:
+                break
+        else:
+            return max(la0 - step, self.lo), min(la0 + step, self.hi)
+        prev, cur = la0, la1
+        while True:
+            step *= 2.0
+            nxt = float(np.clip(cur + direction * step, self.lo, self.hi))
+            if nxt == cur or self(nxt) >= self(cur):
+                return (min(prev, nxt), max(prev, nxt)) if nxt != cur else (min(prev, cur), max(prev, cur))
+            prev, cur = cur, nxt
+
+    def minimum(self, lo: float, hi: float) -> float:
+        """The minimum on [lo, hi] (log alpha) by successive parabolic interpolation through the
+        three best points of a bracket, with golden-section steps where a parabola cannot be
+        trusted (Brent's safeguards), reusing every point evaluated; the best point evaluated."""
+        g = 0.5 * (3.0 - np.sqrt(5.0))
+        a, c = float(lo), float(hi)
+        inside = [la for la in self.memo if a < la < c]
+        b = min(inside, key=self) if inside else a + g * (c - a)
+        fa, fb, fc = self(a), self(b), self(c)
+        if fb > min(fa, fc):  # not a bracket: the minimum is at (or next to) an end
+            return a if fa <= fc else c
+        last = prev = c - a
+        for _ in range(PROFILE_MAX):
+            if c - a <= 2.0 * PROFILE_XTOL or min(fa, fc) == fb:
+                break  # (narrow enough, or flat: no lobe, every alpha fits alike)
+            x = None
+            den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+            if den != 0.0:
+                x = b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den
+                if not (a < x < c) or abs(x - b) > 0.5 * prev:
+                    x = None  # outside the bracket, or not shrinking fast enough: golden section
+            if x is None:
+                x = b + g * (c - b) if c - b > b - a else b - g * (b - a)
+            elif abs(x - b) < PROFILE_XTOL:
+                break  # the parabola's vertex is where we are
+            prev, last = last, abs(x - b)
+            fx = self(x)
+            if fx < fb:
+                if x < b:
+                    c, fc = b, fb
+                else:
+                    a, fa = b, fb
+                b, fb = x, fx
+            elif x < b:
+                a, fa = x, fx
+            else:
+                c, fc = x, fx
+        return min(self.memo, key=lambda la: self.memo[la][1])
+
+    def search(self, la0: float) -> float:
+        return self.minimum(*self.bracket(la0))
+
+
+def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, guard: bool = True,
+                method: str = "profile"):
     """Fit kd, ks (RGB) and alpha with the light fixed; returns a `reflectance.SpecularFit` whose
-    material is `plastic` (ks made grey, its colour moved into the light, as `fit_specular`)."""
+    material is `plastic` (ks made grey, its colour moved into the light, as `fit_specular`).
+
+    method : "profile" (a search in log alpha over the profile of the linear parameters: the
+        module's docstring) or "lm" (Levenberg-Marquardt over all seven, the reference)."""
+    if method not in ("profile", "lm"):
+        raise ValueError(f"method must be profile or lm, got {method!r}")
     from .reflectance import LM_TOLERANCES, FitError, SpecularFit
 
     t0 = time.perf_counter()
@@ -302,10 +406,42 @@ def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, 
         return res.x, float(2 * res.cost) * scale**2
 
     a0 = float(np.clip(start.roughness if start.roughness > 0 else 0.1, *ALPHA_RANGE))
-    b0 = base_scale(a0, data.ior, data.distribution)
-    x0 = np.array([*(np.asarray(start.kd) * b0), *start.ks, np.log(a0)], float)
+    if method == "lm":  # (the profile search needs no start for the linear parameters)
+        b0 = base_scale(a0, data.ior, data.distribution)
+        x0 = np.array([*(np.asarray(start.kd) * b0), *start.ks, np.log(a0)], float)
     path, message = "lm", "converged from the start"
-    if guard:
+    if method == "profile":
+        profile = _Profile(data, lo, hi)
+        path, message = "profile", "converged from the start"
+        la = None
+        if guard:
+            # the scan's alphas on the profile: its best one's neighbours bracket the global basin; the
+            # start's own basin is searched first when the start fits better than every scan point
+            for a in SCAN_ALPHA:
+                profile.at(np.log(a))
+            scan = sorted(profile.memo)
+            best = min(range(len(scan)), key=lambda i: profile.memo[scan[i]][1])
+            sq_best = profile.memo[scan[best]][1]
+            coef = profile.memo[scan[best]][0]
+            if not np.any(coef[3:6] > 0) and sq_best <= profile(np.log(a0)):
+                la, path = scan[best], "scan"
+                message = "no specular term fits at any alpha of the scan (ks = 0): the data support no highlight"
+            elif profile(np.log(a0)) <= sq_best:
+                la = profile.search(np.log(a0))
+            if la is None or (path != "scan" and profile(la) > sq_best):
+                restarted = la is not None
+                la = profile.minimum(scan[best - 1] if best > 0 else lo, scan[best + 1] if best + 1 < len(scan) else hi)
+                path = "scan+profile"
+                message = (f"the search from the start (alpha = {a0:g}) stopped in a worse local optimum; restarted "
+                           f"at the scan's best alpha = {np.exp(scan[best]):g}" if restarted else
+                           f"started at the scan's best alpha = {np.exp(scan[best]):g} (it fits better than "
+                           f"alpha = {a0:g})")
+        else:
+            la = profile.search(np.log(a0))
+        nfev = len(profile.memo)
+        coef, sq = profile.at(la)
+        x = np.array([*coef, float(np.clip(la, lo, hi))])
+    elif guard:
         # alpha is the one nonlinear parameter: a scan over it (kd', ks >= 0 exact at each alpha) finds
         # the global optimum's basin; LM starts from the scan's best when that fits better than the
         # start, and from the scan's best again if LM from the start ends worse than it
@@ -340,11 +476,9 @@ def fit_plastic(data: PlasticData, start: Material, max_evaluations: int = 100, 
     r = residual(x)
     dof = max(len(r) - 7, 1)
     cov = (r @ r / dof) * np.linalg.pinv(J.T @ J)
-    # kd = kd' / b(alpha): propagate with d log b / d log alpha (two more coatings)
+    # kd = kd' / b(alpha): propagate with d log b / d log alpha
     bs = base_scale(alpha, data.ior, data.distribution)
-    h = 0.02
-    dlogb = (np.log(base_scale(alpha * np.exp(h), data.ior, data.distribution))
-             - np.log(base_scale(alpha * np.exp(-h), data.ior, data.distribution))) / (2 * h)
+    dlogb = base_scale_slope(alpha, data.ior, data.distribution)
     T = np.eye(7)
     T[:3, :3] /= bs
     T[:3, 6] = -np.maximum(x[:3], 0) / bs * dlogb

@@ -199,7 +199,7 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
             o = out[sl]
             mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
             o *= A
-            o *= mf.smith_g1(t2d, alpha, dist)
+            o *= mf.smith_g1_f32(t2d, alpha, dist)
             o *= g1v_all[sl, None]
             graze = nv_all[sl] < mf.GRAZING_NV
             if graze.any():  # the lobe's energy at grazing views, before shadowing (`microfacet.grazing_cap`)
