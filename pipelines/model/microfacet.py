@@ -456,13 +456,13 @@ def lobe_values(x2, y2, wx, wy, alpha: float, distribution: str, out=None, deriv
     along the slopes (x2, y2) (float32 blocks), into `out`; with `derivative_out`, also
     dDn / d log alpha there."""
     a2 = np.float32(alpha * alpha)
-    if derivative_out is None and out is None:  # (the fit's and the render's inner loop: in place)
+    if derivative_out is None:  # (the fit's and the render's inner loop: in place)
         ax = wx + a2
         ay = wy + a2
         norm = ax * ay
         np.sqrt(norm, out=norm)
         norm *= np.float32(np.pi)
-        q = np.divide(x2, ax, out=ax)
+        q = np.divide(x2, ax, out=ax if out is None else out)
         q += np.divide(y2, ay, out=ay)
         if distribution == "ggx":
             q += np.float32(1.0)
