@@ -192,3 +192,39 @@ def test_the_fits_diffuse_reflectance_follows_the_coating(distribution):
         up, down = (mf.coating(alpha * np.exp(s * h), 1.49, distribution).fdr for s in (1, -1))
         assert fdr == pytest.approx(mf.coating(alpha, 1.49, distribution).fdr, abs=1e-3)
         assert slope == pytest.approx((up - down) / (2 * h), rel=0.15, abs=5e-4), (alpha, slope, (up - down) / (2 * h))
+
+
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+def test_the_float32_inner_loops_are_the_reference_functions(distribution):
+    """The in-place float32 versions used per (pixel, texel) pair (`lobe_factors_f32`,
+    `smith_g1_f32`, `Coating.transmittance_f32`, `lobe_values` without temporaries) give the
+    reference functions' values to float32 rounding, at the mirror direction (N.v = 1), grazing views,
+    texels below the horizon and tan 0 included."""
+    rng = np.random.default_rng(3)
+    cube = CubeMap(16)
+    n = _directions(rng, 64, zmin=0.0)
+    v = _directions(rng, 64, zmin=-0.3)
+    v[:3], v[3] = n[:3], np.array([n[3, 1], -n[3, 0], 0.0]) / np.hypot(n[3, 0], n[3, 1])  # N.v = 1; N.v = 0
+    d = cube.directions.astype(np.float32)
+    nd, vd = n.astype(np.float32) @ d.T, v.astype(np.float32) @ d.T
+    nv = np.einsum("pk,pk->p", n, v).astype(np.float32)[:, None]
+    w = cube.solid_angles.astype(np.float32)[None, :]
+    ref = mf.lobe_factors(nd, nv, vd, w, IOR)
+    new = mf.lobe_factors_f32(nd, nv, vd, w, IOR)
+    for a, b in zip(ref, new):
+        assert b.dtype == np.float32 and np.all(np.isfinite(b))
+        np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-6 * np.abs(a).max())
+    A, x2, y2, wx, wy, t2d = ref
+    t2d[0, :4] = 0.0  # tan 0
+    for alpha in (0.01, 0.15, 0.6):
+        g, dg = mf.smith_g1(t2d, alpha, distribution, derivative=True)
+        g32, dg32 = mf.smith_g1_f32(t2d, alpha, distribution, derivative=True)
+        np.testing.assert_allclose(g32, g, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(dg32, dg, rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(mf.smith_g1_f32(t2d, alpha, distribution), g32)
+        lobe = mf.lobe_values(x2, y2, wx, wy, alpha, distribution)
+        ref_lobe = mf.lobe_values(x2.astype(np.float64), y2, wx, wy, alpha, distribution,
+                                  derivative_out=np.empty(x2.shape))  # (the reference path, in float64)
+        np.testing.assert_allclose(lobe, ref_lobe, rtol=1e-5, atol=1e-6 * ref_lobe.max())
+        coat = mf.coating(alpha, IOR, distribution)
+        np.testing.assert_allclose(coat.transmittance_f32(nd), coat.transmittance(nd), rtol=1e-6, atol=1e-7)

@@ -292,6 +292,33 @@ class Coating:
     def base_scale(self) -> float:
         return 1.0 / (self.eta**2 * (1.0 - self.fdr))
 
+    @property
+    def _table32(self) -> tuple[np.ndarray, np.ndarray]:
+        """The table and its steps in float32 (`transmittance_f32`)."""
+        return np.asarray(self.table, np.float32), np.diff(self.table).astype(np.float32)
+
+    def transmittance_f32(self, mu: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """`transmittance` for float32 blocks of cosines (into `out` when given, which may be mu): the
+        same interpolation in float32 passes. The plastic base's inner loop, where `transmittance`'s
+        float64 temporaries cost 20x Lambert's whole transport."""
+        mu = np.asarray(mu, np.float32)
+        if self.smooth:
+            x = self.transmittance(mu).astype(np.float32)
+        else:
+            table, step = self._table32
+            x = np.clip(mu, np.float32(0.0), np.float32(1.0))
+            x *= np.float32(TABLE_SIZE - 1)
+            i = x.astype(np.int32)
+            np.minimum(i, TABLE_SIZE - 2, out=i)
+            x -= i  # the fraction f
+            x *= step[i]
+            x += table[i]
+            x *= mu > 0
+        if out is None:
+            return x
+        out[...] = x
+        return out
+
     def transmittance(self, mu):
         """t(mu) for incidence cosines mu in [0, 1] (0 below)."""
         mu = np.asarray(mu)
@@ -449,6 +476,56 @@ def lobe_factors(nd, nv, vd, w, eta, blur: float = TEXEL_BLUR):
     ndc = np.clip(nd, 1e-6, 1.0)
     t2d = ((1.0 - ndc * ndc) / (ndc * ndc)).astype(np.float32)
     return A, x2.astype(np.float32), y2.astype(np.float32), wx, wy, t2d
+
+
+def lobe_factors_f32(nd, nv, vd, w, eta, blur: float = TEXEL_BLUR):
+    """`lobe_factors` for float32 blocks (nd, vd (b, N); nv (b, 1); w (1, N)), in in-place passes on
+    five buffers where `lobe_factors` allocates ~30 temporaries: the same values to float32 rounding
+    (the render's plastic transport and the fit's data, per (pixel, texel) pair)."""
+    f32 = np.float32
+    nd, vd = np.asarray(nd, f32), np.asarray(vd, f32)
+    nv, w = np.asarray(nv, f32), np.asarray(w, f32)
+    vh = vd + f32(1.0)
+    vh *= f32(0.5)
+    np.maximum(vh, f32(1e-12), out=vh)
+    np.sqrt(vh, out=vh)  # v.h
+    s_ = nd + nv  # (v + d).N = 2 v.h N.h
+    c2 = np.divide(s_, vh, out=np.empty_like(nd))
+    c2 *= f32(0.5)
+    np.clip(c2, f32(1e-6), f32(1.0), out=c2)
+    c2 *= c2  # cos^2 h
+    t2h = np.subtract(f32(1.0), c2)
+    t2h /= c2
+    np.minimum(t2h, f32(1e6), out=t2h)  # (theta_h < 89.94 deg: beyond, D is nil)
+    np.add(t2h, f32(1.0), out=c2)
+    np.reciprocal(c2, out=c2)  # cos^2 h of the capped tan^2
+    sv = np.sqrt(np.maximum(f32(1.0) - nv * nv, f32(1e-12)))
+    x2 = nd * nv
+    np.subtract(vd, x2, out=x2)
+    x2 /= sv
+    x2 += sv
+    np.maximum(s_, f32(1e-6), out=s_)
+    x2 /= s_  # the slope along: (v + d) . t_v / (v + d) . N
+    x2 *= x2
+    np.minimum(x2, t2h, out=x2)
+    y2 = np.subtract(t2h, x2, out=t2h)
+    A = fresnel_outside(vh, eta)
+    A *= w
+    A /= c2
+    A /= c2
+    A *= f32(0.25) / np.maximum(nv, f32(1e-6))
+    A *= nd > 0
+    A *= nv > 0
+    var = (f32(blur) * w / f32(4.0) * f32(2.0)).astype(f32)
+    wx = np.multiply(c2, c2)
+    np.divide(var, wx, out=wx)
+    wy = c2 * np.maximum(nv * nv, f32(1e-4))
+    np.divide(var, wy, out=wy)
+    t2d = np.clip(nd, f32(1e-6), f32(1.0), out=vh)
+    t2d *= t2d
+    np.subtract(f32(1.0), t2d, out=s_)
+    s_ /= t2d
+    return A, x2, y2, wx, wy, s_
 
 
 def lobe_values(x2, y2, wx, wy, alpha: float, distribution: str, out=None, derivative_out=None):

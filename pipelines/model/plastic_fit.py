@@ -209,7 +209,7 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
                 Lc = np.broadcast_to(L32[None, :, c], D.shape).ravel()
                 Q[k, :, c] += np.bincount(idx, lo_w * Lc, minlength=nb * T).reshape(nb, T)
                 Q[k, :, c] += np.bincount(idx + 1, hi_w * Lc, minlength=nb * T + 1)[: nb * T].reshape(nb, T)
-            A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
             arrays["A"][k] = A * V
             arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
 

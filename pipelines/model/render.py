@@ -163,7 +163,7 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, materia
             if plastic:
                 c = cs[: sl.stop - sl.start]
                 np.matmul(nrm[sl], d.T, out=c)
-                o *= coat.transmittance(c).astype(np.float32)
+                o *= coat.transmittance_f32(c, out=c)
                 o *= t_view[sl, None]
 
     parallel_blocks(run, list(range(0, P, KERNEL_ROWS)))
@@ -195,7 +195,7 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
             k = sl.stop - sl.start
             np.matmul(nrm[sl], d.T, out=nd[:k])
             np.matmul(vw[sl], d.T, out=vd[:k])
-            A, x2, y2, wx, wy, t2d = mf.lobe_factors(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta)
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta)
             o = out[sl]
             mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
             o *= A
