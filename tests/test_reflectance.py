@@ -299,10 +299,21 @@ def test_heads_for_extrapolates_a_shrinking_decrease():
     assert rf._heads_for([R(held_out_rmse=None, fit_rmse=e) for e in (0.3, 0.2, 0.21)]) == 0.2
 
 
+def test_reach_bounds_what_the_first_rounds_could_still_gain():
+    from types import SimpleNamespace as R
+
+    rounds = [R(held_out_rmse=e, fit_rmse=0.0) for e in (0.5275, 0.5205)]
+    assert rf._reach(rounds, 7) == pytest.approx(0.5205 - 2 * 7 * 0.007)
+    assert rf._reach(rounds[:1], 7) is None  # no step yet
+    assert rf._reach([R(held_out_rmse=e, fit_rmse=0.0) for e in (0.5, 0.51)], 7) is None  # it rose
+    assert rf._reach([R(held_out_rmse=None, fit_rmse=e) for e in (0.3, 0.2)], 1) == pytest.approx(0.0)  # the fit error
+
+
 def test_a_trailing_candidate_stops_when_it_cannot_win(glossy, alternated):
-    """`beat`: the same alternation stops early (not before its 3rd LM round) once its error heads
-    above another candidate's (here: half what it reaches), saying so; and runs as without it when
-    it can nearly tie (the other's error 2 % above what it reaches: within the margin)."""
+    """`beat`: the same alternation stops early (here at its 3rd LM round or later: its first rounds'
+    steps are large) once its error heads above another candidate's (here: half what it reaches),
+    saying so; and runs as without it when it can nearly tie (the other's error 2 % above what it
+    reaches: within the margin)."""
     full, _ = alternated
     reached = min(r.held_out_rmse for r in full.rounds)
     result = rf.alternate(glossy.vis, glossy.photo, start_from(0.8, 60.0), glossy.solve_light,
@@ -311,6 +322,12 @@ def test_a_trailing_candidate_stops_when_it_cannot_win(glossy, alternated):
     same = rf.alternate(glossy.vis, glossy.photo, start_from(0.8, 60.0), glossy.solve_light,
                         held_out=glossy.held, beat=1.02 * reached)
     assert len(same.rounds) == len(full.rounds) and "heads for" not in same.decision
+    # a candidate that starts near its own optimum (n 5 % off the alternation's end) and lies far behind
+    # stops after its first LM round: 7 more rounds of twice its step cannot bring it level (measured:
+    # 0.5275 -> 0.5205 %, heading for 0.422 % at most, against 0.252 %)
+    near = replace(full.material, shininess=1.05 * full.material.shininess)
+    early = rf.alternate(glossy.vis, glossy.photo, near, glossy.solve_light, held_out=glossy.held, beat=0.5 * reached)
+    assert len(early.rounds) == 2 and "at most 7 more round(s)" in early.decision, early.decision
 
 
 # -- auto: the simplest model the data support ------------------------------------------------------

@@ -56,6 +56,7 @@ ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by l
 RHO_FLOOR = 0.8  # `_heads_for`: the remaining decrease taken as at least 4x the last step
 HELD_OUT_MARGIN = 0.02  # an alternation's round whose held-out error is this much above the lowest is not kept
 BEAT_MARGIN = 0.05  # a trailing auto candidate stops once its error heads for this much above the leader's
+EARLY_REACH = 2.0  # `_reach`: before `_heads_for` can tell a ratio, each round left may gain this x the last step
 MAX_PAIRS = 48_000_000  # (pixel, lit texel) pairs held for the LM (2 float32 arrays: ~400 MB)
 LIT_TOL = 0.0  # texels whose light is exactly zero (all channels) add nothing and are skipped
 _CHUNK = 4096  # pixel rows per evaluation chunk (keeps temporaries small)
@@ -679,14 +680,18 @@ def alternate(vis: VisibilityData, photo: np.ndarray, start: Material, solve_lig
             # tol of the best: spot_plastic_sun's last five rounds were such jumps, alpha 0.1506 ->
             # 0.1501, the error 1.609 -> 1.610 %, each taken for an overshoot until the rounds ran out)
             break
-        # (not before round 3: the first rounds' steps tell little of the later ones, which
-        # `_extrapolate`'s jumps speed up)
-        limit = _heads_for(rounds) if beat is not None and k >= 3 else None
+        # (the geometric limit not before round 3: the first rounds' steps tell little of the later
+        # ones, which `_extrapolate`'s jumps speed up; before it, the most the rounds left could gain
+        # at EARLY_REACH x the last step each)
+        limit = how = None
+        if beat is not None:
+            limit, how = (_heads_for(rounds), "geometric") if k >= 3 else \
+                (_reach(rounds, max_rounds - k), f"at most {max_rounds - k} more round(s) of {EARLY_REACH:g}x its last step")
         if limit is not None and limit > beat * (1.0 + BEAT_MARGIN):
             sol, ctx = kept[best]
             return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
                                f"alternation stopped after {k} LM round(s): its held-out error heads for "
-                               f"{100 * limit:.3f} % (geometric), above the other candidate's {100 * beat:.3f} %",
+                               f"{100 * limit:.3f} % ({how}), above the other candidate's {100 * beat:.3f} %",
                                seconds=time.perf_counter() - t0)
     sol, ctx = kept[best]
     return Reflectance(rounds[best].material, sol, ctx, rounds, best, start.model,
@@ -736,6 +741,20 @@ def _heads_for(rounds) -> float | None:
         return None
     rho = max(d / d_prev, RHO_FLOOR)
     return e[2] - d * rho / (1.0 - rho)
+
+
+def _reach(rounds, remaining: int) -> float | None:
+    """The lowest error (held-out, else fit) an alternation could still reach if each of its
+    `remaining` LM rounds lowered it by EARLY_REACH x its last round's step: a bound for the first
+    rounds, before `_heads_for` can measure how the steps shrink (they do as it converges; a jump of
+    `_extrapolate` can make one larger, hence the factor); None when the last round did not lower it."""
+    if len(rounds) < 2:
+        return None
+    e = [r.held_out_rmse if r.held_out_rmse is not None else r.fit_rmse for r in rounds[-2:]]
+    d = e[0] - e[1]
+    if d <= 0:
+        return None
+    return e[1] - EARLY_REACH * remaining * d
 
 
 def _now(albedo):
