@@ -211,7 +211,6 @@ def test_lobe_ratio_finds_kd_colour_and_ks_with_the_light_re_solved(vis16, model
     """`lobe_ratio` (a round's kd colour and ks, the light re-solved for each on the round's tree):
     from kd grey and ks 3x off, with the true lobe, the truth's kd colour and ks / kd within 1 %
     (photo noise 0.5 %), in one step: no light fixed at the ks before (the alternation's creep)."""
-    from pipelines.light.haar import HaarTree
     from pipelines.light.rows import TransportRows, lobe_pieces
 
     truth = TRUE if model == "blinn-phong" else Material(kd=(0.6, 0.5, 0.4), ks=(0.8,) * 3, model="plastic",
