@@ -382,29 +382,30 @@ def _reflectance_cached(alpha, eta, distribution):
 _LOG_ALPHA_STEP = 0.05  # the fit's E_s tables: linear in log alpha between tables this far apart (cached)
 
 
+def _log_alpha_grid(alpha: float, at):
+    """at(alpha) linear in log alpha between its values on the grid of step _LOG_ALPHA_STEP around
+    alpha (> 0), and its derivative with respect to log alpha."""
+    x = np.log(max(float(alpha), MIN_ALPHA)) / _LOG_ALPHA_STEP
+    k = int(np.floor(x))
+    f = x - k
+    lo, hi = (at(float(np.exp(j * _LOG_ALPHA_STEP))) for j in (k, k + 1))
+    return (1.0 - f) * lo + f * hi, (hi - lo) / _LOG_ALPHA_STEP
+
+
 def specular_albedo_interpolated(alpha: float, eta: float, distribution: str) -> tuple[np.ndarray, np.ndarray]:
     """E_s on the table cosines at alpha (> 0), linear in log alpha between cached tables on a grid of
     step _LOG_ALPHA_STEP, and its derivative with respect to log alpha: for the LM, whose every
     evaluation has another alpha (a Beckmann quadrature costs ~0.8 s; the grid's neighbours are
     reused)."""
-    x = np.log(max(float(alpha), MIN_ALPHA)) / _LOG_ALPHA_STEP
-    k = int(np.floor(x))
-    f = x - k
-    lo = _reflectance_cached(float(np.exp(k * _LOG_ALPHA_STEP)), float(eta), distribution)
-    hi = _reflectance_cached(float(np.exp((k + 1) * _LOG_ALPHA_STEP)), float(eta), distribution)
-    return (1.0 - f) * lo + f * hi, (hi - lo) / _LOG_ALPHA_STEP
+    return _log_alpha_grid(alpha, lambda a: _reflectance_cached(a, float(eta), distribution))
 
 
 def diffuse_reflectance_interpolated(alpha: float, eta: float, distribution: str) -> tuple[float, float]:
     """Fdr (the coating's reflectance of the diffuse base's light from below, as `coating`) at alpha
     (> 0), linear in log alpha between cached tables on the grid of `specular_albedo_interpolated`,
     and its derivative with respect to log alpha."""
-    x = np.log(max(float(alpha), MIN_ALPHA)) / _LOG_ALPHA_STEP
-    k = int(np.floor(x))
-    f = x - k
-    lo, hi = (float(np.mean(_reflectance_cached(float(np.exp(j * _LOG_ALPHA_STEP)), 1.0 / float(eta), distribution)
-                            * _MU) * 2.0) for j in (k, k + 1))
-    return (1.0 - f) * lo + f * hi, (hi - lo) / _LOG_ALPHA_STEP
+    return _log_alpha_grid(alpha, lambda a: float(np.mean(_reflectance_cached(a, 1.0 / float(eta), distribution)
+                                                          * _MU) * 2.0))
 
 
 GRAZING_NV = 0.2  # views with N.v below this get the lobe's energy cap (`grazing_cap`)
