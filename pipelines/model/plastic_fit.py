@@ -310,7 +310,8 @@ class _Profile:
     def minimum(self, lo: float, hi: float) -> float:
         """The minimum on [lo, hi] (log alpha) by successive parabolic interpolation through the
         three best points of a bracket, with golden-section steps where a parabola cannot be
-        trusted (Brent's safeguards), reusing every point evaluated; the best point evaluated."""
+        trusted (Brent's safeguards), reusing every point evaluated; the best point evaluated in
+        [lo, hi] (not elsewhere: `fit_plastic` compares a local search's end with the scan's best)."""
         g = 0.5 * (3.0 - np.sqrt(5.0))
         a, c = float(lo), float(hi)
         inside = [la for la in self.memo if a < la < c]
@@ -344,7 +345,7 @@ class _Profile:
                 a, fa = x, fx
             else:
                 c, fc = x, fx
-        return min(self.memo, key=lambda la: self.memo[la][1])
+        return min((la for la in self.memo if lo <= la <= hi), key=lambda la: self.memo[la][1])
 
     def search(self, la0: float) -> float:
         return self.minimum(*self.bracket(la0))
