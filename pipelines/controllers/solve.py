@@ -1024,9 +1024,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         for k in range(ROBUST_ROUNDS + 1):
             # (a bound says how bright, not where: a clipped pixel's hinge is judged by the noise alone,
             # so a clipped highlight the model cannot reach is an outlier, not a pull on the light)
-            edge = np.where(bound, 0.0, robust.edge_range(vis.samples.pixel, relit))
-            noise = robust.noise_model(values[counted], clipped[counted], relit[counted], edge[counted])
-            w = np.where(counted, robust.weights(noise, values, clipped, relit, edge), 0.0)
+            span = robust.edge_span(vis.samples.pixel, relit, exempt=bound)
+            noise = robust.noise_model(values[counted], clipped[counted], relit[counted], span[counted])
+            w = np.where(counted, robust.weights(noise, values, clipped, relit, span), 0.0)
             # a clipped pixel the light already predicts at least as bright is not fitted (an active set:
             # pinned to its prediction, it would hold the light to a value the photo does not know)
             satisfied = bound & ~robust.below_bound(values, clipped, relit)

@@ -26,7 +26,7 @@ from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_co
                      scene_mesh, scene_views)
 from .visibility import visibility_stage
 
-VERSION = 14  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
+VERSION = 15  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
 #   after the exact recast; 7: sample heads spread over the image when every pixel is taken, level fit errors
 #   from the rows, forced specular rounds all on the same rows; auto also considers the microfacet `plastic`
@@ -39,7 +39,8 @@ VERSION = 14  # 4: the sampled route; reflectance rounds compare their own held-
 #   corrects the system in place (the rows it changed; the same light), solve_report.json's exact_directions.changed;
 #   13: the robust pass (--robust: rows the model cannot explain down-weighted; --clipped bound: clipped pixels
 #   as lower bounds), solve_report.json's `robust`; 14: reflectance rounds chosen by held-out error,
-#   --view-exposure, views' exposure and gain_left
+#   --view-exposure, views' exposure and gain_left; 15: the robust pass judges a pixel near an edge by its
+#   distance to the prediction's range there (not the range added to the noise), at most 5 % down-weighted
 COMPARE_VERSION = 7  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve
 #   10, 11; 7: as solve 12
 
