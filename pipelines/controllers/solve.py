@@ -917,6 +917,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                           "given model's")
         return None if decided is None else decided[1]
 
+    auto_select = None  # auto's choice among the models, run again by the robust pass under its weights
     try:
         if reflectance.mode == "given":
             result = rf.fixed(material, round_light, "given", "given by the user (--material/--model/--kd/--ks/"
@@ -931,12 +932,15 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             start = reflectance.start(material, given)
             progress.note(f"reflectance {reflectance.mode}: start {material_text(start)}")
             if reflectance.mode == "auto":
-                result = rf.select(vis, values, start, round_light, fit_use(), held, material.kd,
-                                   reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
-                                   rows=lm_rows, probe_rows=probe_rows,
-                                   plastic_starts=plastic_starts(reflectance.plastic_start(material, given), given),
-                                   note=progress.note, albedo=current_albedo, per_part=decide_glossy,
-                                   lobe=systems.specular_weight, ratio=lobe_ratio)
+                def auto_select(photo_values, use, held_out, start=start, kd=material.kd,
+                                starts=plastic_starts(reflectance.plastic_start(material, given), given)):
+                    return rf.select(vis, photo_values, start, round_light, use, held_out, kd,
+                                     reflectance.min_specular_gain, reflectance.max_rounds, progress=on_round,
+                                     rows=lm_rows, probe_rows=probe_rows, plastic_starts=starts,
+                                     note=progress.note, albedo=current_albedo, per_part=decide_glossy,
+                                     lobe=systems.specular_weight, ratio=lobe_ratio)
+
+                result = auto_select(values, fit_use(), held)
             else:
                 decided = decide_given(start)
                 result = rf.alternate(vis, values, start, round_light, fit_use(), held, material.kd,
@@ -1049,7 +1053,23 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                              if bound.any() else "")
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
             systems.robust(w, t)
-            if k == 0 and material.specular and reflectance.fits:
+            if k == 0 and auto_select is not None:
+                # auto's choice made again under the weights: the pixels they take weight off decided it
+                # too (teapot_sun_phong, Blinn-Phong, with 2 % of its pixels spoiled: the glints chose
+                # plastic, whose parameters alone the weights then refitted); each model's tree is
+                # refined afresh, as a tree bent towards the glints would hold them
+                refined.clear(), ratio_drops.clear(), last_round.clear()
+                again = auto_select(t, counted & (fit_use() | bound), held & ~bound)
+                last_round.clear()
+                material = again.material
+                systems.keep_only(material)
+                sol, system, recast = refine_chosen(material, again.solution, again.context, recast)
+                n0 = len(result.rounds)
+                result.rounds += [replace(r, index=n0 + r.index, kind="robust") for r in again.rounds]
+                result.chosen_round = n0 + again.chosen_round
+                result.material, result.candidates = material, again.candidates
+                result.decision += f"; chosen again under the robust weights: {again.decision}"
+            elif k == 0 and material.specular and reflectance.fits:
                 again = rf.alternate(vis, t, material, round_light, counted, held & ~bound, kd_reference,
                                      ROBUST_LM_ROUNDS, progress=on_round, rows=lm_rows, albedo=current_albedo,
                                      lobe=systems.specular_weight)
