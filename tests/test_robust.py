@@ -287,10 +287,13 @@ def test_glossy_fit_under_specks(forward_render):
 
 @pytest.mark.slow  # ~25 s: two glossy solves at R = 16
 def test_auto_chooses_again_under_the_robust_weights(forward_render):
-    """With --reflectance auto, the model is chosen again under the robust weights (the spoiled
-    pixels took part in the first choice: with another spoil at R = 32 they chose plastic for this
-    Blinn-Phong teapot). Measured at R = 16, seeds 1, 2, 3, 5: plain 3.07 / 2.42 / 3.21 / 3.88 %
-    diffuse probe, robust 1.48 / 1.49 / 1.40 / 1.44 %, the clean photo's 1.46 %."""
+    """With --reflectance auto, the model is chosen again under the robust weights: the spoiled
+    pixels took part in the first choice. At R = 16 that first choice is already right under these
+    spoils (Blinn-Phong, seeds 1, 2, 3, 5); the case where the glints chose plastic is at R = 32
+    (benchmarks/RESULTS.md, robust fit: seed 2's matte probe 3.5 -> 0.64 %, too slow for a test).
+    This checks that auto chose again, on rows that no longer see the glints, and that the result
+    has the clean photo's accuracy. Measured at R = 16, seeds 1, 2, 3, 5: plain 3.07 / 2.42 / 3.21 /
+    3.88 % diffuse probe, robust 1.48 / 1.49 / 1.40 / 1.44 %, the clean photo's 1.46 %."""
     from pipelines.controllers.solve import ReflectanceOptions, SolveOptions, solve_scene
     from pipelines.io import images
     from pipelines.metrics import probe_errors
@@ -308,7 +311,11 @@ def test_auto_chooses_again_under_the_robust_weights(forward_render):
     fixed, p_fixed = solve(_spoil(photo, fr.visibility.samples.pixel, seed=2))
     assert clean.material.model == fixed.material.model == "blinn-phong"
     assert "chosen again under the robust weights" in fixed.reflectance.decision
-    assert any(r.kind == "robust" for r in fixed.reflectance.rounds)
+    # the candidates reported are the second choice's: its Lambertian held-out error is that of rows
+    # without the glints (the first choice's was ~4x higher), near the clean photo's
+    lam = fixed.reflectance.candidates["lambert"]["held_out_rmse"]
+    assert lam < 1.5 * clean.reflectance.candidates["lambert"]["held_out_rmse"], (
+        lam, clean.reflectance.candidates["lambert"])
     assert p_fixed["diffuse"] < 1.2 * p_clean["diffuse"], (p_fixed, p_clean)
     assert p_fixed["glossy"] < 1.15 * p_clean["glossy"], (p_fixed, p_clean)
 

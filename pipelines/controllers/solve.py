@@ -598,15 +598,19 @@ def robust_counts(w, counted, bound, clipped, values, relit, usable) -> dict:
 
 def robust_summary(options: SolveOptions, info: dict | None, saturated: np.ndarray) -> dict:
     """solve_report.json's `robust`: what the robust pass did (`info`), with its line for the console."""
+    from ..light.robust import MAX_DOWN_SHARE
+
     n_sat = int(np.sum(saturated))
     if info is None:
         why = "--exact (the reference route is plain least squares)" if options.exact else "--no-robust"
         return {"applied": False, "note": f"not applied: {why}; clipped pixels left out", "clipped_pixels": n_sat}
     mode = ("lower bounds" if options.bounds else "left out") if n_sat else "none in the photo"
     rep = {"applied": True, **info, "clipped_pixels": n_sat, "clipped": mode,
-           "note": ("a pixel whose residual is beyond threshold_sigmas of its noise (sigma by predicted brightness, "
-                    "and the prediction's change within edge_pixels) is down-weighted, to 0 at twice that; at most "
-                    "2 % of the pixels; the light is solved again when the weights move at least "
+           "note": ("a pixel whose distance to the range its prediction takes within edge_pixels (widened by "
+                    "edge_slack of it each way) is beyond threshold_sigmas of its noise (sigma by predicted "
+                    "brightness) is down-weighted, to 0 at twice that; at most "
+                    f"{100 * MAX_DOWN_SHARE:g} % of the pixels; the light is solved again (auto's model chosen "
+                    "again the first time) when the weights move at least "
                     f"{100 * ROBUST_TRIGGER:g} % of the squared error (influence), and that solve is kept only if "
                     f"its plain relit error is at most {100 * ROBUST_ACCEPT:g} % above the plain solve's (kept, "
                     "plain_relit_rmse); a clipped channel is a lower bound: only a prediction below it is an error")}
@@ -864,7 +868,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             return systems.glossy_rows(systems.highlight_rows(light, kd, LM_ROWS, LM_ROWS // 4))
 
         def probe_rows(light):
-            return systems.glossy_rows(systems.highlight_rows(light, material.kd, PROBE_ROWS, PROBE_ROWS // 2))
+            return systems.glossy_rows(systems.highlight_rows(light, kd_reference, PROBE_ROWS, PROBE_ROWS // 2))
 
     def fit_use():  # the pixels a reflectance fit may use: not those of matte parts
         w = systems.specular_weight()
@@ -1024,7 +1028,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
         counted = usable | bound
         weights, targets = usable.astype(np.float64), values
         plain = (material, sol, relit, None if albedo is None else albedo.scales.copy(), result.material,
-                 list(result.rounds), result.chosen_round, result.decision)
+                 list(result.rounds), result.chosen_round, result.decision, dict(result.candidates))
         for k in range(ROBUST_ROUNDS + 1):
             # (a bound says how bright, not where: a clipped pixel's hinge is judged by the noise alone,
             # so a clipped highlight the model cannot reach is an outlier, not a pull on the light)
@@ -1053,14 +1057,21 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                              if bound.any() else "")
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
             systems.robust(w, t)
-            if k == 0 and auto_select is not None:
+            again = None
+            if k == 0 and auto_select is not None and (albedo is None or len(albedo.parts.parts) < 2):
                 # auto's choice made again under the weights: the pixels they take weight off decided it
                 # too (teapot_sun_phong, Blinn-Phong, with 2 % of its pixels spoiled: the glints chose
                 # plastic, whose parameters alone the weights then refitted); each model's tree is
-                # refined afresh, as a tree bent towards the glints would hold them
+                # refined afresh, as a tree bent towards the glints would hold them. (Several parts:
+                # which of them wear the lobe was decided with the first choice; the chosen model is
+                # refitted, below.)
                 refined.clear(), ratio_drops.clear(), last_round.clear()
-                again = auto_select(t, counted & (fit_use() | bound), held & ~bound)
+                try:
+                    again = auto_select(t, counted, held & ~bound)
+                except rf.FitError as exc:
+                    progress.note(f"robust pass: auto's choice not made again ({exc}): the chosen model is refitted")
                 last_round.clear()
+            if again is not None:
                 material = again.material
                 systems.keep_only(material)
                 sol, system, recast = refine_chosen(material, again.solution, again.context, recast)
@@ -1102,7 +1113,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             after = versus_photo(relit, values, usable)["relative_rmse_vs_photo"]
             robust_info["plain_relit_rmse"] = {"before": before, "after": after}
             if after > (1.0 + ROBUST_ACCEPT) * before:
-                material, sol, relit, scales, result.material, result.rounds, result.chosen_round, result.decision = plain
+                (material, sol, relit, scales, result.material, result.rounds, result.chosen_round, result.decision,
+                 result.candidates) = plain
                 if albedo is not None:
                     albedo.scales = scales
                 systems.robust(usable.astype(np.float64), values)

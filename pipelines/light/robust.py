@@ -99,13 +99,13 @@ def edge_span(pixels: np.ndarray, prediction: np.ndarray, radius: int = EDGE_PIX
     from scipy import ndimage
 
     pixels = np.asarray(pixels, np.int64)
-    prediction = np.asarray(prediction, np.float32)
+    prediction = np.asarray(prediction, np.float64)
     lo_r, lo_c = pixels.min(axis=0) - radius
     r, c = pixels[:, 0] - lo_r, pixels[:, 1] - lo_c
     shape = (int(r.max()) + radius + 1, int(c.max()) + radius + 1)
     size = 2 * radius + 1
     out = np.empty(prediction.shape + (2,), np.float64)
-    hi, lo = np.full(shape, -np.inf, np.float32), np.full(shape, np.inf, np.float32)
+    hi, lo = np.full(shape, -np.inf), np.full(shape, np.inf)
     for ch in range(prediction.shape[1]):
         hi[r, c] = lo[r, c] = prediction[:, ch]
         out[:, ch, 0] = ndimage.minimum_filter(lo, size)[r, c]
@@ -114,7 +114,7 @@ def edge_span(pixels: np.ndarray, prediction: np.ndarray, radius: int = EDGE_PIX
     out[..., 0] -= slack
     out[..., 1] += slack
     if exempt is not None:
-        out[exempt] = np.asarray(prediction, np.float64)[exempt][..., None]
+        out[exempt] = prediction[exempt][..., None]
     return out
 
 
