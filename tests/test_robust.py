@@ -78,9 +78,11 @@ def test_an_edge_placed_a_pixel_off_is_not_an_outlier_but_a_far_one_is():
     rng = np.random.default_rng(3)
     span = robust.edge_span(pixels, pred)
     near = np.abs(c.ravel() - 29.5) <= robust.EDGE_PIXELS
-    slack = robust.EDGE_SLACK * 0.7
-    np.testing.assert_allclose(span[near, :, 0], 0.1 - slack)  # the step's range, within EDGE_PIXELS of it
-    np.testing.assert_allclose(span[near, :, 1], 0.8 + slack)
+    # the step's range within EDGE_PIXELS of it, widened by EDGE_SLACK, and by PEAK_WIDTHS of it past
+    # the end of the range the pixel's own prediction is at (its plateau: a sharper edge there is a blur)
+    slack, peak = robust.EDGE_SLACK * 0.7, robust.PEAK_WIDTHS * 0.7
+    np.testing.assert_allclose(span[near, :, 0], 0.1 - slack - np.where(pred[near] == 0.1, peak, 0.0))
+    np.testing.assert_allclose(span[near, :, 1], 0.8 + slack + np.where(pred[near] == 0.8, peak, 0.0))
     np.testing.assert_allclose(span[~near], np.repeat(pred[~near, :, None], 2, axis=-1))
     seg = (r.ravel() >= 10) & (r.ravel() < 15)  # a few rows where the photo's edge is elsewhere (1 % of the pixels)
     for shift, off in ((1, False), (robust.EDGE_PIXELS + 4, True)):
@@ -119,6 +121,28 @@ def test_a_speck_beside_an_edge_is_an_outlier_but_a_value_the_edge_takes_nearby_
     # the exempt pixels (clipped ones: a bound is judged by the noise alone) have no edge range
     exempt = robust.edge_span(pixels, pred, exempt=inside)
     np.testing.assert_allclose(exempt[inside], np.repeat(pred[inside, :, None], 2, axis=-1))
+
+
+def test_a_peak_sharper_than_the_prediction_s_is_not_an_outlier_but_a_glint_on_it_is():
+    # a highlight whose core the light's texels blur (teapot_plastic_sun, alpha 0.05: 11 clean pixels,
+    # 5.8 % of the squared error, were down-weighted before peaks had their own allowance)
+    H, W = 40, 60
+    r, c = np.mgrid[:H, :W]
+    pixels = np.column_stack([r.ravel(), c.ravel()])
+    d2 = ((r - 20.0) ** 2 + (c - 30.0) ** 2).ravel()
+    pred = np.repeat((0.2 + 0.5 * np.exp(-d2 / (2 * 3.0**2)))[:, None], 3, axis=1)  # the blurred highlight
+    rng = np.random.default_rng(5)
+    values = np.repeat((0.2 + 0.7 * np.exp(-d2 / (2 * 2.0**2)))[:, None], 3, axis=1)  # the photo's, sharper
+    values += 0.002 * rng.standard_normal(values.shape)
+    glint = (r.ravel() == 21) & (c.ravel() == 30)
+    values[glint] = 3.0
+    span = robust.edge_span(pixels, pred)
+    w, _ = _weights(values, pred, span=span)
+    core = d2 <= 2.0
+    assert np.all(w[core & ~glint] == 1.0) and w[glint] == 0.0
+    # without the peak's allowance its core would go: the allowance is what keeps it
+    plain = np.repeat(pred[..., None], 2, axis=-1)
+    assert np.all(_weights(values, pred, span=plain)[0][core] < 1.0)
 
 
 def test_a_clipped_channel_is_a_lower_bound():

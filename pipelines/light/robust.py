@@ -11,10 +11,13 @@ with what the model can be expected to miss there:
   texels, the registration), so near an edge of the prediction a pixel may take any value the
   prediction takes within EDGE_PIXELS of it: per channel the window's range [lo, hi], widened by
   EDGE_SLACK (hi - lo) each way (a predicted edge blurrier than the photo's, from the light's
-  texels, does not reach the plateaus' values within EDGE_PIXELS), and the pixel's edge residual is
-  its distance to that range (0 inside it; away from edges lo = hi = the prediction, and it is the
+  texels, does not reach the plateaus' values within EDGE_PIXELS); a pixel whose prediction is at the
+  top of that range (within EDGE_SLACK of it: a peak, or the lit side of a step) may exceed it by
+  PEAK_WIDTHS widths more, and one at the bottom go below it as far (a highlight's core, or a
+  shadow's, that the light's texels blur); the pixel's edge residual is its distance to that range (0 inside it; away from edges lo = hi = the prediction, and it is the
   plain residual). A misplaced shadow is inside the range; a dark speck on the lit side of an edge,
-  darker than the shadow beside it, is not (the range's own width, added to the noise in
+  darker than the shadow beside it, is not (the lit side is the top of its range: it may only exceed
+  it) (the range's own width, added to the noise in
   quadrature as a tolerance, let such specks through: a fifth of them on bunny_sun);
 - a pixel's standardised residual z = e_edge / sigma(y) (e_edge: the RMS over the channels of the
   edge residual) and its weight
@@ -46,6 +49,7 @@ INLIER_Z = 4.0  # rows within this many noise scales keep their full weight
 MAX_DOWN_SHARE = 0.05  # at most this share of the rows is down-weighted
 EDGE_PIXELS = 2  # a prediction's edges are trusted to within this many pixels
 EDGE_SLACK = 0.25  # ... and the range the prediction takes there widened by this share of it each way
+PEAK_WIDTHS = 1.0  # ... and by this many of its widths beyond a peak (or below a trough) of the prediction
 ROWS_PER_BIN = 512  # brightness bins of the noise scale: this many rows each (at most MAX_BINS)
 MAX_BINS = 16
 CHI3_MEDIAN = 0.888  # median of sqrt(chi2_3 / 3): a 3-channel Gaussian's RMS over its sigma
@@ -60,7 +64,7 @@ class NoiseModel:
     threshold: float  # t: weight 1 up to z = t, 0 from 2t
 
     def summary(self) -> dict:
-        return {"threshold_sigmas": float(self.threshold), "edge_pixels": EDGE_PIXELS, "edge_slack": EDGE_SLACK,
+        return {"threshold_sigmas": float(self.threshold), "edge_pixels": EDGE_PIXELS, "edge_slack": EDGE_SLACK, "peak_widths": PEAK_WIDTHS,
                 "sigma_by_brightness": [[float(b), float(s)] for b, s in zip(self.brightness, self.sigma)]}
 
 
@@ -110,9 +114,15 @@ def edge_span(pixels: np.ndarray, prediction: np.ndarray, radius: int = EDGE_PIX
         hi[r, c] = lo[r, c] = prediction[:, ch]
         out[:, ch, 0] = ndimage.minimum_filter(lo, size)[r, c]
         out[:, ch, 1] = ndimage.maximum_filter(hi, size)[r, c]
-    slack = EDGE_SLACK * (out[..., 1] - out[..., 0])
-    out[..., 0] -= slack
-    out[..., 1] += slack
+    width = out[..., 1] - out[..., 0]
+    # a pixel at the top of its window's range may be a peak the prediction blurs (a highlight's core, a
+    # sharper lobe than the light's texels give): the photo may exceed the range there by its width;
+    # likewise below it at the bottom (a trough). A pixel beside a step is at one end and may not go
+    # past the other: a dark speck on a shadow edge's lit side is out of range
+    top = prediction >= out[..., 1] - EDGE_SLACK * width
+    bottom = prediction <= out[..., 0] + EDGE_SLACK * width
+    out[..., 0] -= EDGE_SLACK * width + np.where(bottom, PEAK_WIDTHS * width, 0.0)
+    out[..., 1] += EDGE_SLACK * width + np.where(top, PEAK_WIDTHS * width, 0.0)
     if exempt is not None:
         out[exempt] = prediction[exempt][..., None]
     return out

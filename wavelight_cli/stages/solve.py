@@ -41,7 +41,8 @@ VERSION = 15  # 4: the sampled route; reflectance rounds compare their own held-
 #   as lower bounds), solve_report.json's `robust`; 14: reflectance rounds chosen by held-out error,
 #   --view-exposure, views' exposure and gain_left; 15: the robust pass judges a pixel near an edge by its
 #   distance to the prediction's range there (not the range added to the noise), at most 5 % down-weighted,
-#   and auto chooses its model again under the weights
+#   a peak or trough of the prediction allowed its range's width beyond it, and auto chooses its model again
+#   under the weights
 COMPARE_VERSION = 7  # 4: the bases solved on the system solve ends on (bright directions cast exactly); 5, 6: as solve
 #   10, 11; 7: as solve 12
 
