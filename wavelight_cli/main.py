@@ -544,7 +544,8 @@ def reflectance_options(f):
                    "pixels show its highlight: reflectance.json's parts[].ks).")
 @click.option("--robust/--no-robust", default=True, show_default=True,
               help="Down-weight the few pixels the model cannot explain (a dust speck, a mis-registered rim, a "
-                   "highlight no lobe fits: at most 5 %, beyond 4 noise scales) and solve again (auto choosing its model again); "
+                   "highlight no lobe fits: at most 5 %, beyond 4 noise scales) and solve again (auto choosing "
+                   "its model again); "
                    "solve_report.json's 'robust' says how many.")
 @click.option("--clipped", type=click.Choice(["bound", "drop"]), default="bound", show_default=True,
               help="Clipped (saturated) pixels of 8/16-bit photos: lower bounds of the light's prediction "

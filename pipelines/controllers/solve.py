@@ -607,7 +607,7 @@ def robust_summary(options: SolveOptions, info: dict | None, saturated: np.ndarr
     mode = ("lower bounds" if options.bounds else "left out") if n_sat else "none in the photo"
     rep = {"applied": True, **info, "clipped_pixels": n_sat, "clipped": mode,
            "note": ("a pixel whose distance to the range its prediction takes within edge_pixels (widened by "
-                    "edge_slack of it each way) is beyond threshold_sigmas of its noise (sigma by predicted "
+                    "edge_slack of it each way, and by peak_widths of it past a peak or trough) is beyond threshold_sigmas of its noise (sigma by predicted "
                     "brightness) is down-weighted, to 0 at twice that; at most "
                     f"{100 * MAX_DOWN_SHARE:g} % of the pixels; the light is solved again (auto's model chosen "
                     "again the first time) when the weights move at least "

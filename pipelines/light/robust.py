@@ -11,14 +11,15 @@ with what the model can be expected to miss there:
   texels, the registration), so near an edge of the prediction a pixel may take any value the
   prediction takes within EDGE_PIXELS of it: per channel the window's range [lo, hi], widened by
   EDGE_SLACK (hi - lo) each way (a predicted edge blurrier than the photo's, from the light's
-  texels, does not reach the plateaus' values within EDGE_PIXELS); a pixel whose prediction is at the
-  top of that range (within EDGE_SLACK of it: a peak, or the lit side of a step) may exceed it by
-  PEAK_WIDTHS widths more, and one at the bottom go below it as far (a highlight's core, or a
-  shadow's, that the light's texels blur); the pixel's edge residual is its distance to that range (0 inside it; away from edges lo = hi = the prediction, and it is the
-  plain residual). A misplaced shadow is inside the range; a dark speck on the lit side of an edge,
-  darker than the shadow beside it, is not (the lit side is the top of its range: it may only exceed
-  it) (the range's own width, added to the noise in
-  quadrature as a tolerance, let such specks through: a fifth of them on bunny_sun);
+  texels, does not reach the plateaus' values within EDGE_PIXELS). A pixel whose prediction is at
+  the top of that range (within EDGE_SLACK of it: a peak, or the lit side of a step) may exceed it
+  by PEAK_WIDTHS widths more, and one at the bottom go below it as far (a highlight's core, or a
+  shadow's, that the light's texels blur). The pixel's edge residual is its distance to that range
+  (0 inside it; away from edges lo = hi = the prediction, and it is the plain residual). A
+  misplaced shadow is inside the range; a dark speck on the lit side of an edge, darker than the
+  shadow beside it, is not: the lit side is the top of its range and may only exceed it. (The
+  range's width added to the noise in quadrature, the first rule, let such specks through: a fifth
+  of the spoiled pixels of bunny_sun.)
 - a pixel's standardised residual z = e_edge / sigma(y) (e_edge: the RMS over the channels of the
   edge residual) and its weight
   w = 1 for z <= t, (1 - ((z - t) / t)^2)^2 for t < z < 2t, 0 beyond (a redescending taper),
@@ -34,8 +35,8 @@ with what the model can be expected to miss there:
   noise alone (no edge term), so a clipped highlight the model cannot reach is down-weighted like
   any pixel it cannot explain.
 
-The controller (`controllers/solve.py`) solves the light again under these weights while they move
-at least 1 % of the squared error, and keeps that solve only if its plain error over every usable
+The controller (`controllers/solve.py`) solves the light again under these weights (the first
+time, `--reflectance auto` chooses its model again) while they move at least 1 % of the squared error, and keeps that solve only if its plain error over every usable
 pixel rises by at most 2 % (else the down-weighted pixels were carrying the light).
 """
 
@@ -64,7 +65,8 @@ class NoiseModel:
     threshold: float  # t: weight 1 up to z = t, 0 from 2t
 
     def summary(self) -> dict:
-        return {"threshold_sigmas": float(self.threshold), "edge_pixels": EDGE_PIXELS, "edge_slack": EDGE_SLACK, "peak_widths": PEAK_WIDTHS,
+        return {"threshold_sigmas": float(self.threshold), "edge_pixels": EDGE_PIXELS, "edge_slack": EDGE_SLACK,
+                "peak_widths": PEAK_WIDTHS,
                 "sigma_by_brightness": [[float(b), float(s)] for b, s in zip(self.brightness, self.sigma)]}
 
 
@@ -98,7 +100,8 @@ def edge_span(pixels: np.ndarray, prediction: np.ndarray, radius: int = EDGE_PIX
               exempt: np.ndarray | None = None) -> np.ndarray:
     """(n, C, 2) per pixel and channel the range [lo, hi] the prediction takes within `radius`
     pixels of it (the (2 radius + 1)^2 window's used pixels), widened by EDGE_SLACK (hi - lo) each
-    way; `pixels` (n, 2). `exempt` (n,) bool: pixels judged without an edge term (lo = hi = their
+    way, and by PEAK_WIDTHS (hi - lo) more above a pixel predicted at its top (below one at its
+    bottom); `pixels` (n, 2). `exempt` (n,) bool: pixels judged without an edge term (lo = hi = their
     prediction)."""
     from scipy import ndimage
 
@@ -128,7 +131,8 @@ def edge_span(pixels: np.ndarray, prediction: np.ndarray, radius: int = EDGE_PIX
     return out
 
 
-def edge_residual_rms(values: np.ndarray, clipped: np.ndarray, prediction: np.ndarray, span: np.ndarray) -> np.ndarray:
+def edge_residual_rms(values: np.ndarray, clipped: np.ndarray, prediction: np.ndarray,
+                      span: np.ndarray) -> np.ndarray:
     """(n,) each pixel's RMS over the channels of its distance to the prediction's range near it
     (`edge_span`); a clipped channel's: the hinge below its bound (judged by the noise alone)."""
     v = np.asarray(values, np.float64)
