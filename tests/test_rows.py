@@ -163,7 +163,7 @@ def test_replaying_the_levels_on_a_corrected_system_needs_no_pass_over_the_rows(
     systems.recast(scene.backend, texels, system)
     passes = []
     original = rows_module.Pyramid.leaf_sums
-    monkeypatch.setattr(rows_module.Pyramid, "leaf_sums", lambda self, tree: passes.append(tree) or original(self, tree))
+    monkeypatch.setattr(rows_module.Pyramid, "leaf_sums", lambda self, tree, *rows: passes.append(tree) or original(self, tree, *rows))
     again = bases.replay(system, vis.cube, first)
     monkeypatch.setattr(rows_module.Pyramid, "leaf_sums", original)
     fresh = bases.solve(_Systems(systems.vis, values, usable, held, options, _quiet()).system(Material()), vis.cube)
@@ -339,6 +339,51 @@ def test_keeping_only_the_chosen_models_transport_drops_the_others_and_rebuilds_
     tr.keep_only(Material())  # lambert chosen: no lobe kept
     assert tr._specular == {} and tr.diffuse().rows is chosen.D.rows
     np.testing.assert_array_equal(tr.part(plastic, photo, weights, len(rows)).D.rows, coated.D.rows)
+
+
+def test_one_materials_transports_are_kept_and_every_held_one_follows_a_recast(mitsuba_scene):
+    """auto's candidates in turn (memory): `part` keeps one material's transports, so once a plastic
+    system is built the rows hold neither the Lambertian D nor the Phong S. A system built before
+    still holds its own (a round's system a head of them), and a recast's new visibility
+    (`update`) rebuilds their rows too: each system's transports equal those built afresh on the new
+    visibility. Once no system holds them, they are gone."""
+    import gc
+
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(11)
+    rows = np.sort(rng.permutation(vis.n_pixels)[:400])
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = np.ones(len(rows))
+    phong = Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong")
+    plastic = Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2)
+    tr = TransportRows(vis, rows)
+    lam = tr.part(Material(), photo, weights, len(rows))
+    whole = tr.part(phong, photo, weights, len(rows))
+    head = tr.part(phong, photo, weights, len(rows), n_rows=150)  # a round's system: a head of the S
+    assert head.S.rows.base is whole.S.rows
+    whole = None
+    coated = tr.part(plastic, photo, weights, len(rows))
+    assert tr._diffuse is None and [k[0] for k in tr._specular] == ["plastic"]
+    assert len(tr.pyramids()) == 4  # Lambert's D, Phong's S (held by the head), plastic's D and S
+    stored = np.asarray(vis.stored).copy()
+    local = np.arange(0, len(rows), 5)
+    for t in rng.choice(vis.cube.n_texels, 40, replace=False):
+        stored[rows[local], t >> 3] ^= np.uint8(1 << (t & 7))
+    held = ((lam, Material(), None), (head, phong, 150), (coated, plastic, None))
+    before = [(p.D.rows.copy(), None if p.S is None else p.S.rows.copy()) for p, _, _ in held]
+    tr.update(stored[rows[local]], local)
+    fresh = TransportRows(VisibilityData(vis.samples, vis.cube, vis.supersample, stored), rows)
+    for (system, material, n), (D0, S0) in zip(held, before):
+        again = fresh.part(material, photo, weights, len(rows), n_rows=n)
+        np.testing.assert_allclose(system.D.rows, again.D.rows, rtol=1e-6, atol=1e-7)
+        changed = np.abs(system.D.rows - D0).max()
+        if material.specular:
+            np.testing.assert_allclose(system.S.rows, again.S.rows, rtol=1e-5, atol=1e-7)
+            changed = max(changed, np.abs(system.S.rows - S0).max())
+        assert changed > 1e-3 * np.abs(again.D.rows).max()  # (the flips reached every held transport)
+    lam = head = held = system = None
+    gc.collect()
+    assert len(tr.pyramids()) == 2  # plastic's, still kept by the rows
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])

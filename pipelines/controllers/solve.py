@@ -264,8 +264,7 @@ class _Systems:
         any: a stratum of their own, each row standing for itself), a spread head of the other fit
         rows standing for all of those, and a head of n_held held-out rows standing for all of them."""
         fs, hs = self.fit_sample, self.held_sample
-        D = self.fit_rows.diffuse().rows
-        pred = (D @ np.asarray(light, np.float32)).astype(np.float64) * np.asarray(kd)[None, :]
+        pred = self.fit_rows.diffuse_shading(light) * np.asarray(kd)[None, :]
         if self.albedo is not None:
             pred *= self.albedo.values(fs.rows)
         values = self.targets[fs.rows]
@@ -791,6 +790,9 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # refined under Lambert, bent towards the highlights, cannot hold a lobe's light: DiLiGenT
             # 092's plastic rounds fitted 18 % on it against 9 % on their own), then re-solves on the
             # same smaller system, so that every round's errors are over the same rows
+            # (the round's system before holds its lobe's transports (heads of them): they go before
+            # this one's are built, or both are held at once: memory)
+            last_round.clear()
             if ("model", m.model) not in refined:
                 full_solve(m, systems.system(m))
             # (re-solved on its held-out rows too: the round's light feeds the next LM fit, which a
@@ -865,6 +867,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
     lm_rows = probe_rows = None
     if not options.exact:  # the LM fits the same pixels the light is fitted to; the probe a few of them
         def lm_rows(light, kd):  # (of the glossy parts: `decide_glossy`)
+            # (an LM fit follows: the round's lobe transports go, the next round's lobe is another: memory)
+            systems.fit_rows.release_lobe(), systems.held_rows.release_lobe()
             return systems.glossy_rows(systems.highlight_rows(light, kd, LM_ROWS, LM_ROWS // 4))
 
         def probe_rows(light):
@@ -1000,6 +1004,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             progress.note(f"refining the light under {material_text(material)}")
             system = systems.system(material)
             sol = full_solve(material, system)
+        elif system is None:  # (auto let the Lambertian system go while it tried the lobes: memory)
+            system = systems.system(material)
         return sol, system, done
 
     sol, system, recast = refine_chosen(material, sol, system, recast)

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
+import weakref
 
 import numpy as np
 from scipy.linalg import blas
@@ -32,6 +33,7 @@ from .system import SystemPart
 
 
 MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
+SYSTEM_BLOCK = 4096  # a tree system is projected this many rows at a time (memory: their leaf sums, weighted)
 
 
 class Pyramid:
@@ -66,6 +68,7 @@ class Pyramid:
         """The first n rows (views, no copy)."""
         out = object.__new__(Pyramid)
         out.rows, out.tile_sizes, out.offsets, out.version = self.rows[:n], self.tile_sizes, self.offsets, self.version
+        out.whole = getattr(self, "whole", self)  # (the whole pyramid lives while a head does: `TransportRows.pyramids`)
         out.levels = [{lv: (None if a is None else a[:n]) for lv, a in tile.items()} for tile in self.levels]
         return out
 
@@ -83,20 +86,22 @@ class Pyramid:
                     a[index] = fresh[level]
         self.version[0] += 1
 
-    def leaf_sums(self, tree: HaarTree) -> np.ndarray:
-        """(n, leaves) float32: each row's transport summed over each leaf (`tree.leaves()` order)."""
+    def leaf_sums(self, tree: HaarTree, rows: slice = slice(None)) -> np.ndarray:
+        """(n, leaves) float32: each row's transport (of `rows`: all by default) summed over each leaf
+        (`tree.leaves()` order)."""
         if tuple(tree.tile_sizes) != self.tile_sizes:
             raise ValueError("the tree does not cover this cube map's tiles")
-        out = np.empty((len(self.rows), tree.n_leaves), np.float32)
+        n = len(range(*rows.indices(len(self.rows))))
+        out = np.empty((n, tree.n_leaves), np.float32)
         for level, (cols, tile, i, j) in _leaf_groups(tree).items():
             for t in np.unique(tile):
                 sel = tile == t
                 pool = self.levels[t][level]
                 if pool is None:  # single texels
                     size = self.tile_sizes[t]
-                    out[:, cols[sel]] = self.rows[:, self.offsets[t] + i[sel] * size + j[sel]]
+                    out[:, cols[sel]] = self.rows[rows, self.offsets[t] + i[sel] * size + j[sel]]
                 else:
-                    out[:, cols[sel]] = pool[:, (i[sel] << level) + j[sel]]
+                    out[:, cols[sel]] = pool[rows, (i[sel] << level) + j[sel]]
         return out
 
 
@@ -135,6 +140,11 @@ def _gram(A: np.ndarray) -> np.ndarray:
 def _tree_size(key: tuple) -> int:
     """A memo key's tree size: its subdivided nodes (leaves = tiles + 3 x nodes)."""
     return sum(len(nodes) for nodes in key[1])
+
+
+def _of_rows(v, rows: slice):
+    """A per-row (n, 1) factor's rows, or a scalar one as it is."""
+    return v[rows] if np.ndim(v) == 2 else v
 
 
 def _channel(v: np.ndarray, c: int) -> np.ndarray:
@@ -230,31 +240,44 @@ class RowsPart:
             ks, a * ks[ref], rtol=1e-9, atol=0))
         return a if shared else None
 
-    def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype) -> np.ndarray:
-        """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows."""
-        sw = np.sqrt(self.w).astype(dtype)[:, None]
+    def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype, rows: slice = slice(None)) -> np.ndarray:
+        """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows (A_D,
+        A_S those of `rows`)."""
+        sw = np.sqrt(self.w[rows]).astype(dtype)[:, None]
         A = A_D.astype(dtype)  # a copy (A_D float32): scaled in place, no second temporary
-        A *= sw * self._kd(c).astype(dtype)
+        A *= sw * _of_rows(self._kd(c), rows).astype(dtype)
         if A_S is not None and self.ks[c] != 0:
-            A += A_S.astype(dtype) * (sw * self._ks(c).astype(dtype))
+            A += A_S.astype(dtype) * (sw * _of_rows(self._ks(c), rows).astype(dtype))
         return A
 
-    def _system(self, A_D: np.ndarray, A_S: np.ndarray | None) -> SystemPart:
-        """The weighted normal equations of coefficient-space rows (in `precision`)."""
+    def _system(self, A_D: np.ndarray | None, A_S: np.ndarray | None, blocks=None) -> SystemPart:
+        """The weighted normal equations of coefficient-space rows (in `precision`): of A_D, A_S
+        (n, k), or summed over `blocks`, (row slice, its A_D, its A_S) for every row in turn (memory:
+        a block's arrays at a time)."""
         dtype = np.float64 if self.precision == "double" else np.float32
-        sw = np.sqrt(self.w)
         scale = self.channel_scale
-        if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
-            ref = int(np.argmax(self.kd_eff + np.asarray(self.ks)))
-            A = self._weighted(A_D, A_S, ref, dtype)
-            h = _rhs(A, self.b * sw[:, None]) * scale[None, :]
-            return SystemPart(_gram(A), h, self.bb, self.n_pixels, scale)
-        G, h = [], []
-        for c in range(np.shape(self.kd)[-1]):
-            A = self._weighted(A_D, A_S, c, dtype)
-            G.append(_gram(A))
-            h.append(_rhs(A, self.b[:, c] * sw))
-        return SystemPart(np.stack(G), np.column_stack(h), self.bb, self.n_pixels, None)
+        ref = int(np.argmax(self.kd_eff + np.asarray(self.ks))) if scale is not None else None
+        G = h = None
+        for rows, a_d, a_s in ([(slice(None), A_D, A_S)] if blocks is None else blocks):
+            sw = np.sqrt(self.w[rows])
+            b = self.b[rows]
+            if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
+                A = self._weighted(a_d, a_s, ref, dtype, rows)
+                g, r = _gram(A), _rhs(A, b * sw[:, None]) * scale[None, :]
+            else:
+                g, r = [], []
+                for c in range(np.shape(self.kd)[-1]):
+                    A = self._weighted(a_d, a_s, c, dtype, rows)
+                    g.append(_gram(A))
+                    r.append(_rhs(A, b[:, c] * sw))
+                g, r = np.stack(g), np.column_stack(r)
+            A = None
+            if G is None:
+                G, h = g, r
+            else:
+                G += g
+                h += r
+        return SystemPart(G, h, self.bb, self.n_pixels, scale)
 
     def _kd(self, c: int) -> np.ndarray:
         """Channel c's kd: a scalar, or (n, 1) per row."""
@@ -284,12 +307,15 @@ class RowsPart:
         if hit is not None and hit[0] == self._versions():
             self.memo.move_to_end(key)
             return hit[1]
-        A_D = self.D.leaf_sums(tree)
-        A_S = None if self.S is None else self.S.leaf_sums(tree)
         if self._per_group:
+            A_D = self.D.leaf_sums(tree)
+            A_S = None if self.S is None else self.S.leaf_sums(tree)
             out = {int(q): self._group_pieces(A_D, A_S, np.flatnonzero(self.group == q)) for q in np.unique(self.group)}
-        else:
-            out = self._system(A_D, A_S)
+        else:  # (block by block: the leaf sums of all rows, weighted per channel, would be held at once)
+            n = self.n_rows
+            out = self._system(None, None, (
+                (sl, self.D.leaf_sums(tree, sl), None if self.S is None else self.S.leaf_sums(tree, sl))
+                for sl in (slice(a, min(n, a + SYSTEM_BLOCK)) for a in range(0, max(n, 1), SYSTEM_BLOCK))))
         self.memo[key] = (self._versions(), out)
         while len(self.memo) > MEMO_TREES:  # (memory: leaves^2 per tree, part, channel)
             # the smallest tree goes (this one too, if it is): the cheapest to project again. Levels
@@ -600,6 +626,11 @@ class TransportRows:
     The diffuse transport D is built once (a `plastic` base's once per coating); the specular one S
     once per lobe (model, shininess or roughness, IOR, distribution). Only the
     stored visibility rows (bit-packed) and the rows' geometry are kept to rebuild S.
+
+    Memory: the transports of one material are kept at a time (`part` drops the others' first:
+    `keep_only`), so that auto's candidates (a Lambertian D, a Phong S, a plastic's coated D and S)
+    are not all held at once; a system built before still holds its own, and `update` (a recast's
+    new visibility) rebuilds the rows of every transport still held anywhere.
     """
 
     def __init__(self, vis, rows: np.ndarray):
@@ -614,6 +645,7 @@ class TransportRows:
         self._diffuse: Pyramid | None = None
         self._coated: tuple | None = None  # (plastic key, D seen through the coating, the material)
         self._specular: dict = {}  # lobe key -> (S, the unit material)
+        self._built: list = []  # (weak reference, material, kind) of every transport built: `pyramids`
         self.specular_weight: np.ndarray | None = None  # (rows,) 0 where the pixel's part is matte
 
     def set_specular(self, weight: np.ndarray | None) -> None:
@@ -637,13 +669,18 @@ class TransportRows:
         if self.specular_weight is not None:
             matte_rows(D, S, V, self.vis.samples.normal[index], self.vis.cube, material, self.specular_weight[index])
 
+    def _built_one(self, pyramid: Pyramid, material, kind: str) -> Pyramid:
+        self._built = [b for b in self._built if b[0]() is not None] + [(weakref.ref(pyramid), material, kind)]
+        return pyramid
+
     def pyramids(self) -> list:
-        """(pyramid, the material it was built with: None for the Lambertian D, kind) of every kept
-        transport: what `update` rebuilds rows of."""
-        out = [] if self._diffuse is None else [(self._diffuse, None, "diffuse")]
-        if self._coated is not None:
-            out.append((self._coated[1], self._coated[2], "diffuse"))
-        out += [(S, m, "specular") for S, m in self._specular.values()]
+        """(pyramid, the material it was built with: None for the Lambertian D, kind) of every
+        transport still held (here, or by a system built on it): what `update` rebuilds rows of."""
+        out = []
+        for ref, material, kind in self._built:
+            pyramid = ref()
+            if pyramid is not None:
+                out.append((pyramid, material, kind))
         return out
 
     def keep_only(self, material) -> None:
@@ -659,6 +696,25 @@ class TransportRows:
             self._coated = None
         lobe = (material.model, material.shininess, material.roughness, material.ior, material.distribution)
         self._specular = {k: v for k, v in self._specular.items() if material.specular and tuple(k[:-1]) == lobe}
+
+    def release_lobe(self) -> None:
+        """Drop the kept specular and coated transports (a reflectance fit follows: the next light's
+        lobe is another one, built again; the Lambertian D stays, every round's base)."""
+        self._coated = None
+        self._specular = {}
+
+    def diffuse_shading(self, light: np.ndarray) -> np.ndarray:
+        """(rows, 3) float64 the Lambertian D (kd = 1) times `light` ((N,) or (N, 3)): from the kept D
+        if there is one, else in blocks, not kept (under another material it would only hold memory)."""
+        from ..model.materials import Material
+        from ..model.render import render
+
+        L = np.asarray(light, np.float32)
+        if L.ndim == 1:
+            L = np.repeat(L[:, None], 3, axis=1)
+        if self._diffuse is not None:
+            return (self._diffuse.rows @ L).astype(np.float64)
+        return render(self.vis, L, Material(kd=(1.0, 1.0, 1.0)))
 
     def update(self, stored: np.ndarray, index: np.ndarray) -> None:
         """New visibility for some of these rows (`index` into them; `stored` their new stored
@@ -696,7 +752,7 @@ class TransportRows:
         plastic = material is not None and material.model == PLASTIC
         if not plastic:
             if self._diffuse is None:
-                self._diffuse = self._diffuse_rows(None, self.vis.n_pixels)
+                self._diffuse = self._built_one(self._diffuse_rows(None, self.vis.n_pixels), None, "diffuse")
             return self._diffuse
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         key = (material.roughness, material.ior, material.distribution)
@@ -704,7 +760,7 @@ class TransportRows:
             kept = self._coated[1]
             return kept if len(kept.rows) == n else kept.head(n)
         self._coated = None  # (the coating before: its memory goes before the new one is built)
-        pyramid = self._diffuse_rows(material, n)
+        pyramid = self._built_one(self._diffuse_rows(material, n), material, "diffuse")
         self._coated = (key, pyramid, material)
         return pyramid
 
@@ -748,7 +804,7 @@ class TransportRows:
                 specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl], self.vis.samples.view[sl],
                                    self.vis.cube, unit, out=S[sl])
                 self._matte(None, S[sl], V[: sl.stop - sl.start], np.arange(sl.start, sl.stop), unit)
-            self._specular = {key: (Pyramid(S, self.vis.cube.tile_sizes), unit)}
+            self._specular = {key: (self._built_one(Pyramid(S, self.vis.cube.tile_sizes), unit, "specular"), unit)}
         return self._specular[key][0]
 
     def part(self, material, photo: np.ndarray, weights: np.ndarray, n_pixels: int,
@@ -763,6 +819,7 @@ class TransportRows:
         rows render with albedo x scales[group] (`RowsPart.group`)."""
         n = self.vis.n_pixels if n_rows is None else min(int(n_rows), self.vis.n_pixels)
         w = np.asarray(weights, np.float64)
+        self.keep_only(material)  # (another material's transports go before this one's are built)
         D = self.diffuse(material, n)
         D = D if len(D.rows) == n else D.head(n)
         S = self.specular(material, n) if material.specular else None

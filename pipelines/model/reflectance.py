@@ -891,6 +891,8 @@ def select(vis: VisibilityData, photo: np.ndarray, start: Material, solve_light:
     tried = []
 
     def first_light(name, material):
+        nonlocal ctx0
+        ctx0 = None  # (the Lambertian system's transport goes before the lobe's is built: memory; built again if chosen)
         ts = time.perf_counter()
         sol, ctx = solve_light(material)
         e1 = sol.held_out_rmse if sol.held_out_rmse is not None else sol.fit_rmse
