@@ -33,7 +33,8 @@ from .system import SystemPart
 
 
 MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
-SYSTEM_BLOCK = 4096  # a tree system is projected this many rows at a time (memory: their leaf sums, weighted)
+SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of at most this many leaf sums
+# (memory: a block's leaf sums and weighted copies; fewer, larger blocks keep BLAS efficient)
 
 
 class Pyramid:
@@ -127,10 +128,22 @@ def _rhs(A: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 def _gram(A: np.ndarray) -> np.ndarray:
     """A'A (A float64: dsyrk; float32: ssyrk, accumulated in float32), symmetrised, in float64."""
+    return _symmetric(_upper_gram(A))
+
+
+def _upper_gram(A: np.ndarray, C: np.ndarray | None = None) -> np.ndarray:
+    """The upper triangle of A'A (in A's precision), added to C's (an earlier block's) when given."""
     syrk = blas.dsyrk if A.dtype == np.float64 else blas.ssyrk
-    # the upper triangle; without a `c` scipy's wrapper starts from zeros, so the strict lower
-    # triangle is 0 and G + G' with the diagonal halved is the symmetric matrix (one pass, no triu copies)
-    G = syrk(1.0, np.ascontiguousarray(A).T, trans=0, lower=0).astype(np.float64)
+    # without a `c` scipy's wrapper starts from zeros, so the strict lower triangle stays 0
+    if C is None:
+        return syrk(1.0, np.ascontiguousarray(A).T, trans=0, lower=0)
+    return syrk(1.0, np.ascontiguousarray(A).T, beta=1.0, c=C, trans=0, lower=0, overwrite_c=1)
+
+
+def _symmetric(C: np.ndarray) -> np.ndarray:
+    """The symmetric float64 matrix of an upper triangle whose strict lower one is 0: C + C' with
+    the diagonal halved (one pass, no triu copies)."""
+    G = C.astype(np.float64)
     G += G.T
     diagonal = np.einsum("ii->i", G)
     diagonal *= 0.5
@@ -257,27 +270,22 @@ class RowsPart:
         dtype = np.float64 if self.precision == "double" else np.float32
         scale = self.channel_scale
         ref = int(np.argmax(self.kd_eff + np.asarray(self.ks))) if scale is not None else None
-        G = h = None
+        channels = [ref] if scale is not None else range(np.shape(self.kd)[-1])
+        upper, h = [None] * len(channels), 0.0  # (each channel's Gram accumulated over the blocks in A's precision)
         for rows, a_d, a_s in ([(slice(None), A_D, A_S)] if blocks is None else blocks):
             sw = np.sqrt(self.w[rows])
             b = self.b[rows]
-            if scale is not None:  # T_c = a_c T_ref (a_ref = 1): one Gram matrix
-                A = self._weighted(a_d, a_s, ref, dtype, rows)
-                g, r = _gram(A), _rhs(A, b * sw[:, None]) * scale[None, :]
-            else:
-                g, r = [], []
-                for c in range(np.shape(self.kd)[-1]):
-                    A = self._weighted(a_d, a_s, c, dtype, rows)
-                    g.append(_gram(A))
-                    r.append(_rhs(A, b[:, c] * sw))
-                g, r = np.stack(g), np.column_stack(r)
+            r = []
+            for i, c in enumerate(channels):
+                A = self._weighted(a_d, a_s, c, dtype, rows)
+                upper[i] = _upper_gram(A, upper[i])
+                # (T_c = a_c T_ref, a_ref = 1: one Gram matrix, every channel's h from it)
+                r.append(_rhs(A, b * sw[:, None]) * scale[None, :] if scale is not None else _rhs(A, b[:, c] * sw))
             A = None
-            if G is None:
-                G, h = g, r
-            else:
-                G += g
-                h += r
-        return SystemPart(G, h, self.bb, self.n_pixels, scale)
+            h = h + (r[0] if scale is not None else np.column_stack(r))
+        if scale is not None:
+            return SystemPart(_symmetric(upper[0]), h, self.bb, self.n_pixels, scale)
+        return SystemPart(np.stack([_symmetric(u) for u in upper]), h, self.bb, self.n_pixels, None)
 
     def _kd(self, c: int) -> np.ndarray:
         """Channel c's kd: a scalar, or (n, 1) per row."""
@@ -313,9 +321,10 @@ class RowsPart:
             out = {int(q): self._group_pieces(A_D, A_S, np.flatnonzero(self.group == q)) for q in np.unique(self.group)}
         else:  # (block by block: the leaf sums of all rows, weighted per channel, would be held at once)
             n = self.n_rows
+            step = -(-n // max(1, -(-n * tree.n_leaves // SYSTEM_BLOCK_VALUES))) if n else 1
             out = self._system(None, None, (
                 (sl, self.D.leaf_sums(tree, sl), None if self.S is None else self.S.leaf_sums(tree, sl))
-                for sl in (slice(a, min(n, a + SYSTEM_BLOCK)) for a in range(0, max(n, 1), SYSTEM_BLOCK))))
+                for sl in (slice(a, min(n, a + step)) for a in range(0, max(n, 1), step))))
         self.memo[key] = (self._versions(), out)
         while len(self.memo) > MEMO_TREES:  # (memory: leaves^2 per tree, part, channel)
             # the smallest tree goes (this one too, if it is): the cheapest to project again. Levels
