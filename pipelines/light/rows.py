@@ -33,6 +33,7 @@ from .system import SystemPart
 
 
 MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
+PYRAMID_BLOCK = 1024  # rows whose block sums a thread forms at a time
 SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of at most this many leaf sums
 # (memory: a block's leaf sums and weighted copies; fewer, larger blocks keep BLAS efficient)
 
@@ -55,15 +56,22 @@ class Pyramid:
         offset = 0
         for s in self.tile_sizes:
             top = int(np.log2(s))
-            cur = rows[:, offset:offset + s * s].reshape(n, s, s)
-            tile = {top: None}  # the texels themselves: columns of `rows`
-            for level in range(top - 1, -1, -1):
-                cur = cur[:, :, 0::2] + cur[:, :, 1::2]
-                cur = cur[:, 0::2, :] + cur[:, 1::2, :]
-                tile[level] = cur.reshape(n, cur.shape[1] * cur.shape[2])
-            self.levels.append(tile)
+            # {level: array}; the texels themselves (top) are columns of `rows`
+            self.levels.append({top: None, **{lv: np.empty((n, 4**lv), np.float32) for lv in range(top)}})
             self.offsets.append(offset)
             offset += s * s
+
+        def run(starts):  # (the sums of blocks of rows, on both cores: the same sums as all rows at once)
+            for a in starts:
+                sl = slice(a, min(n, a + PYRAMID_BLOCK))
+                for s, off, tile in zip(self.tile_sizes, self.offsets, self.levels):
+                    cur = rows[sl, off:off + s * s].reshape(-1, s, s)
+                    for level in range(int(np.log2(s)) - 1, -1, -1):
+                        cur = cur[:, :, 0::2] + cur[:, :, 1::2]
+                        cur = cur[:, 0::2, :] + cur[:, 1::2, :]
+                        tile[level][sl] = cur.reshape(len(cur), -1)
+
+        parallel_blocks(run, list(range(0, n, PYRAMID_BLOCK)))
 
     def head(self, n: int) -> "Pyramid":
         """The first n rows (views, no copy)."""
