@@ -1004,7 +1004,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             progress.note(f"refining the light under {material_text(material)}")
             system = systems.system(material)
             sol = full_solve(material, system)
-        elif system is None:  # (auto let the Lambertian system go while it tried the lobes: memory)
+        elif system is None and not options.exact:
+            # (auto let the Lambertian system go while it tried the lobes: memory) built again, so that
+            # the bright-direction cast corrects it in place and replays the light's levels on it (the
+            # exact route's cast builds its system anew in any case: `finished` builds it otherwise)
             system = systems.system(material)
         return sol, system, done
 
@@ -1021,6 +1024,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                       specular=systems.specular_weight())
 
     sol, system, recast = cast_bright(sol, system, recast)
+    if system is None:  # (the exact route's Lambertian system, let go by auto and not built by a cast)
+        system = systems.system(material)
     sol = finished(sol, system)
     relit = relit_view(sol)
     robust_info = robust_weights = None

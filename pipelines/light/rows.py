@@ -679,25 +679,29 @@ class TransportRows:
         self._coated = None
         self._specular = {}
 
-    def _matte(self, D, S, V, index, material) -> None:
-        """`render.matte_rows` for rows `index` (into these rows) whose new transports are D and S."""
+    def _matte(self, D, S, V, index, material, weight="current") -> None:
+        """`render.matte_rows` for rows `index` (into these rows) whose new transports are D and S,
+        under the rows' specular weights (`weight`: those a transport was built with)."""
         from ..model.render import matte_rows
 
-        if self.specular_weight is not None:
-            matte_rows(D, S, V, self.vis.samples.normal[index], self.vis.cube, material, self.specular_weight[index])
+        weight = self.specular_weight if isinstance(weight, str) else weight
+        if weight is not None:
+            matte_rows(D, S, V, self.vis.samples.normal[index], self.vis.cube, material, weight[index])
 
     def _built_one(self, pyramid: Pyramid, material, kind: str) -> Pyramid:
-        self._built = [b for b in self._built if b[0]() is not None] + [(weakref.ref(pyramid), material, kind)]
+        self._built = [b for b in self._built if b[0]() is not None] + [
+            (weakref.ref(pyramid), material, kind, self.specular_weight)]
         return pyramid
 
     def pyramids(self) -> list:
-        """(pyramid, the material it was built with: None for the Lambertian D, kind) of every
-        transport still held (here, or by a system built on it): what `update` rebuilds rows of."""
+        """(pyramid, the material it was built with: None for the Lambertian D, kind, the rows'
+        specular weights then) of every transport still held (here, or by a system built on it):
+        what `update` rebuilds rows of."""
         out = []
-        for ref, material, kind in self._built:
+        for ref, material, kind, weight in self._built:
             pyramid = ref()
             if pyramid is not None:
-                out.append((pyramid, material, kind))
+                out.append((pyramid, material, kind, weight))
         return out
 
     def keep_only(self, material) -> None:
@@ -746,17 +750,17 @@ class TransportRows:
         v.stored[index] = stored
         V = decode(np.asarray(stored), v.cube.n_texels, v.encoding, True)
         normal, view = v.samples.normal[index], v.samples.view[index]
-        for pyramid, material, kind in self.pyramids():
+        for pyramid, material, kind, weight in self.pyramids():
             sel = np.flatnonzero(index < len(pyramid.rows))  # a specular S may cover a head only
             if not len(sel):
                 continue
             if kind == "diffuse":
                 new = diffuse_transport(V[sel], normal[sel], v.cube, material, view[sel])
                 if material is not None:  # (a coated D: the matte rows' plain)
-                    self._matte(new, None, V[sel], index[sel], material)
+                    self._matte(new, None, V[sel], index[sel], material, weight)
             else:
                 new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material)
-                self._matte(None, new, V[sel], index[sel], material)
+                self._matte(None, new, V[sel], index[sel], material, weight)
             pyramid.set_rows(index[sel], new)
 
     def diffuse(self, material=None, n_rows: int | None = None) -> Pyramid:
