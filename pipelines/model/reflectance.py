@@ -198,20 +198,23 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     A = np.empty((len(rows), len(lit)), np.float32)
     log_c = np.empty((len(rows), len(lit)), np.float32)
     lambert = Material()
-    out = 0
-    for first in range(0, P, _CHUNK):  # blocks of stored rows, keeping the selected ones
-        r = rows[(rows >= first) & (rows < first + _CHUNK)]
-        if len(r) == 0:
-            continue
-        V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)
-        D, _ = transport(V, s.normal[r], s.view[r], cube, lambert)
-        k = slice(out, out + len(r))
-        diffuse[k] = D.astype(np.float64) @ L
-        Ab, c = specular_factors(V[:, lit], s.normal[r], s.view[r], cube, model, lit)
-        A[k] = Ab
-        with np.errstate(divide="ignore"):
-            log_c[k] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
-        out += len(r)
+    # blocks of stored rows, keeping the selected ones (`rows` is sorted), on both cores
+    firsts = np.arange(0, P, _CHUNK)
+    bounds = np.searchsorted(rows, np.append(firsts, P))
+
+    def run(todo):
+        for b in todo:
+            k = slice(int(bounds[b]), int(bounds[b + 1]))
+            r = rows[k]
+            V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)
+            D, _ = transport(V, s.normal[r], s.view[r], cube, lambert)
+            diffuse[k] = D.astype(np.float64) @ L
+            Ab, c = specular_factors(V[:, lit], s.normal[r], s.view[r], cube, model, lit)
+            A[k] = Ab
+            with np.errstate(divide="ignore"):
+                log_c[k] = np.where(c > 0, np.log(np.maximum(c, 1e-35)), -80.0)
+
+    parallel_blocks(run, [b for b in range(len(firsts)) if bounds[b + 1] > bounds[b]])
     values = np.asarray(photo, np.float64)[rows]
     if albedo is not None:
         diffuse *= np.asarray(albedo, np.float64)[rows]
