@@ -33,6 +33,7 @@ from .system import SystemPart
 
 
 MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
+_CURRENT = object()  # (`TransportRows._matte`: the rows' current specular weights)
 PYRAMID_BLOCK = 1024  # rows whose block sums a thread forms at a time
 SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of at most this many leaf sums
 # (memory: a block's leaf sums and weighted copies; fewer, larger blocks keep BLAS efficient)
@@ -77,7 +78,7 @@ class Pyramid:
         """The first n rows (views, no copy)."""
         out = object.__new__(Pyramid)
         out.rows, out.tile_sizes, out.offsets, out.version = self.rows[:n], self.tile_sizes, self.offsets, self.version
-        out.whole = getattr(self, "whole", self)  # (the whole pyramid lives while a head does: `TransportRows.pyramids`)
+        out.whole = getattr(self, "whole", self)  # (the whole lives while a head does: `TransportRows.pyramids`)
         out.levels = [{lv: (None if a is None else a[:n]) for lv, a in tile.items()} for tile in self.levels]
         return out
 
@@ -261,7 +262,8 @@ class RowsPart:
             ks, a * ks[ref], rtol=1e-9, atol=0))
         return a if shared else None
 
-    def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype, rows: slice = slice(None)) -> np.ndarray:
+    def _weighted(self, A_D: np.ndarray, A_S: np.ndarray | None, c: int, dtype,
+                  rows: slice = slice(None)) -> np.ndarray:
         """sqrt(w) (kd_c A_D + ks_c A_S) in `dtype`: channel c's weighted coefficient-space rows (A_D,
         A_S those of `rows`)."""
         sw = np.sqrt(self.w[rows]).astype(dtype)[:, None]
@@ -662,7 +664,7 @@ class TransportRows:
         self._diffuse: Pyramid | None = None
         self._coated: tuple | None = None  # (plastic key, D seen through the coating, the material)
         self._specular: dict = {}  # lobe key -> (S, the unit material)
-        self._built: list = []  # (weak reference, material, kind) of every transport built: `pyramids`
+        self._built: list = []  # (weak reference, material, kind, specular weight) per transport built: `pyramids`
         self.specular_weight: np.ndarray | None = None  # (rows,) 0 where the pixel's part is matte
 
     def set_specular(self, weight: np.ndarray | None) -> None:
@@ -679,12 +681,13 @@ class TransportRows:
         self._coated = None
         self._specular = {}
 
-    def _matte(self, D, S, V, index, material, weight="current") -> None:
+    def _matte(self, D, S, V, index, material, weight=_CURRENT) -> None:
         """`render.matte_rows` for rows `index` (into these rows) whose new transports are D and S,
-        under the rows' specular weights (`weight`: those a transport was built with)."""
+        under the rows' specular weights (`weight`: those a transport was built with; default the
+        rows' current ones)."""
         from ..model.render import matte_rows
 
-        weight = self.specular_weight if isinstance(weight, str) else weight
+        weight = self.specular_weight if weight is _CURRENT else weight
         if weight is not None:
             matte_rows(D, S, V, self.vis.samples.normal[index], self.vis.cube, material, weight[index])
 
