@@ -205,6 +205,63 @@ def test_an_intermediate_light_finished_is_the_all_pixel_solve(mitsuba_scene):
     assert done.held_out_rmse == lazy.held_out_rmse and done.chosen == lazy.chosen
 
 
+def test_the_final_light_solved_in_single_precision_fits_as_the_double_ones(mitsuba_scene):
+    """`finish` projects the chosen tree of the sampled rows in float32 (half the time of float64):
+    the light it solves explains every row of the system as the light of the float64 system does
+    (the reference), its residuals measured on the rows."""
+    from pipelines.light import haar
+    from pipelines.light.solution import solve_nonnegative
+
+    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
+    photo = images.read_image(scene.path / "image.exr")
+    options = SolveOptions()
+    values, usable, held = prepare_photo(vis, photo, options)
+    system = _Systems(vis, values, usable, held, options, _quiet()).system(Material())
+    done = bases.finish(system, vis.cube, bases.solve(system, vis.cube, all_pixels=False))
+    both = system.fit.combine(system.held_out)
+    assert {p.precision for p in both.parts} == {"double"}
+    assert {p.precision for p in both.in_single().parts} == {"single"}
+    P = haar.leaf_matrix(done.tree)
+    x, _ = solve_nonnegative(both.project_tree(done.tree))  # (the parts' own precision: float64)
+    ref = np.asarray(P @ x)
+    ref[done.unobservable] = 0.0
+    e_single, e_double = both.relative_rmse(done.light), both.relative_rmse(ref)
+    assert e_double > 0.005  # (a photo with noise: the test is not on an exact fit)
+    assert e_single <= e_double * (1.0 + 1e-4)
+    relit = np.concatenate([p.predict(done.light) for p in both.parts])
+    relit_ref = np.concatenate([p.predict(ref) for p in both.parts])
+    assert np.abs(relit - relit_ref).max() <= 2e-3 * np.abs(relit_ref).max()
+
+
+def test_leaf_sums_in_leaf_order_are_the_tree_orders_reordered(mitsuba_scene):
+    """`Pyramid.leaf_sums(grouped=True)` (one gather per level and tile) holds the tree-order sums'
+    columns in `leaf_order`; both are the rows summed over each leaf, and a tree system projected
+    from them is the one of the rows' leaf sums in tree order."""
+    from pipelines.light import haar
+    from pipelines.light.rows import RowsPart, _gram, leaf_order
+
+    _, vis = _small_vis(mitsuba_scene, resolution=16)
+    rng = np.random.default_rng(5)
+    rows = rng.permutation(vis.n_pixels)[:500]
+    D = TransportRows(vis, rows).diffuse()
+    roots = HaarTree.roots(vis.cube.tile_sizes)
+    deep = subdivide(roots, np.ones(roots.n_leaves, bool))
+    for _ in range(2):  # leaves at three levels, in every tile
+        deep = subdivide(deep, rng.random(deep.n_leaves) < 0.4)
+    for tree in _trees(vis.cube) + [deep]:
+        A = D.leaf_sums(tree)
+        np.testing.assert_allclose(A, D.rows @ haar.leaf_matrix(tree).toarray(), rtol=1e-5, atol=1e-6 * A.max())
+        np.testing.assert_array_equal(D.leaf_sums(tree, grouped=True), A[:, leaf_order(tree)])
+        np.testing.assert_array_equal(D.leaf_sums(tree, slice(100, 300), grouped=True),
+                                      A[100:300][:, leaf_order(tree)])
+        w = rng.uniform(0.5, 2.0, len(rows))
+        part = RowsPart(D, None, np.array([0.8, 0.6, 0.4]), np.zeros(3), rng.uniform(0, 1, (len(rows), 3)), w,
+                        len(rows))
+        G = part.project_tree(tree).G
+        ref = _gram(A.astype(np.float64) * np.sqrt(w)[:, None] * 0.8)
+        np.testing.assert_allclose(G, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+
+
 def _quiet():
     from pipelines.controllers.solve import Progress
 

@@ -96,23 +96,62 @@ class Pyramid:
                     a[index] = fresh[level]
         self.version[0] += 1
 
-    def leaf_sums(self, tree: HaarTree, rows: slice = slice(None)) -> np.ndarray:
-        """(n, leaves) float32: each row's transport (of `rows`: all by default) summed over each leaf
-        (`tree.leaves()` order)."""
+    def leaf_sums(self, tree: HaarTree, rows: slice = slice(None), grouped: bool = False) -> np.ndarray:
+        """(n, leaves) float32: each row's transport (of `rows`: all by default) summed over each leaf,
+        in `tree.leaves()` order, or with `grouped` in `leaf_order(tree)` (the leaves of one level of
+        one tile side by side: each is one gather into a block of columns, ~2x faster than placing
+        them in tree order)."""
         if tuple(tree.tile_sizes) != self.tile_sizes:
             raise ValueError("the tree does not cover this cube map's tiles")
         n = len(range(*rows.indices(len(self.rows))))
         out = np.empty((n, tree.n_leaves), np.float32)
-        for level, (cols, tile, i, j) in _leaf_groups(tree).items():
-            for t in np.unique(tile):
-                sel = tile == t
-                pool = self.levels[t][level]
-                if pool is None:  # single texels
-                    size = self.tile_sizes[t]
-                    out[:, cols[sel]] = self.rows[rows, self.offsets[t] + i[sel] * size + j[sel]]
-                else:
-                    out[:, cols[sel]] = pool[rows, (i[sel] << level) + j[sel]]
+        a = 0
+        for cols, t, level, idx in _leaf_plan(tree):
+            pool = self.levels[t][level]
+            if pool is None:  # single texels
+                src, idx = self.rows, self.offsets[t] + idx
+            else:
+                src = pool
+            # (np.take gathers columns ~1.5x faster than fancy indexing)
+            if grouped:
+                out[:, a:a + len(idx)] = np.take(src[rows], idx, axis=1)
+            else:
+                out[:, cols] = np.take(src[rows], idx, axis=1)
+            a += len(idx)
         return out
+
+
+def _leaf_plan(tree: HaarTree) -> list:
+    """The tree's leaves grouped by (level, tile): [(their columns in `leaves()` order, tile, level,
+    their block index in the tile's level, row-major (at the top level: the texel's in the tile))]."""
+    plan = []
+    for level, (cols, tile, i, j) in _leaf_groups(tree).items():
+        for t in np.unique(tile):
+            sel = tile == t
+            plan.append((cols[sel], int(t), level, (i[sel] << level) + j[sel]))
+    return plan
+
+
+def _in_tree_order(entry, order: np.ndarray):
+    """A tree system (a SystemPart, or per part the pieces of `RowsPart._group_pieces`) projected
+    from leaf sums whose column k is leaf order[k], in `leaves()` order."""
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    if np.array_equal(inv, np.arange(len(inv))):
+        return entry
+
+    def square(M):  # (..., L, L) (np.take: faster than fancy indexing)
+        return None if M is None else np.take(np.take(M, inv, axis=-2), inv, axis=-1)
+
+    if isinstance(entry, SystemPart):
+        return SystemPart(square(entry.G), entry.h[inv], entry.bb, entry.n_pixels, entry.channel_scale)
+    return {q: {k: (v if v is None or k == "bb" else square(v) if k in ("DD", "X", "SS") else v[inv])
+                for k, v in e.items()} for q, e in entry.items()}
+
+
+def leaf_order(tree: HaarTree) -> np.ndarray:
+    """The `leaves()` index of each column of `Pyramid.leaf_sums(tree, grouped=True)`."""
+    return np.concatenate([cols for cols, *_ in _leaf_plan(tree)])
 
 
 def _leaf_groups(tree: HaarTree) -> dict:
@@ -325,16 +364,18 @@ class RowsPart:
         if hit is not None and hit[0] == self._versions():
             self.memo.move_to_end(key)
             return hit[1]
+        # (projected from the leaf sums in `leaf_order`, the faster gather, and put in tree order after)
         if self._per_group:
-            A_D = self.D.leaf_sums(tree)
-            A_S = None if self.S is None else self.S.leaf_sums(tree)
+            A_D = self.D.leaf_sums(tree, grouped=True)
+            A_S = None if self.S is None else self.S.leaf_sums(tree, grouped=True)
             out = {int(q): self._group_pieces(A_D, A_S, np.flatnonzero(self.group == q)) for q in np.unique(self.group)}
         else:  # (block by block: the leaf sums of all rows, weighted per channel, would be held at once)
             n = self.n_rows
             step = -(-n // max(1, -(-n * tree.n_leaves // SYSTEM_BLOCK_VALUES))) if n else 1
             out = self._system(None, None, (
-                (sl, self.D.leaf_sums(tree, sl), None if self.S is None else self.S.leaf_sums(tree, sl))
+                (sl, self.D.leaf_sums(tree, sl, True), None if self.S is None else self.S.leaf_sums(tree, sl, True))
                 for sl in (slice(a, min(n, a + step)) for a in range(0, max(n, 1), step))))
+        out = _in_tree_order(out, leaf_order(tree))
         self.memo[key] = (self._versions(), out)
         while len(self.memo) > MEMO_TREES:  # (memory: leaves^2 per tree, part, channel)
             # the smallest tree goes (this one too, if it is): the cheapest to project again. Levels
@@ -444,6 +485,15 @@ class RowsPart:
             else:
                 entry = fix(entry, a, c)
             self.memo[key] = (self._versions(), entry)
+
+    def in_single(self) -> "RowsPart":
+        """These rows with their systems accumulated in float32 (`precision`; a memo of their own): what
+        the final light of a chosen tree is solved on (`bases.tree.finish`: half the time of float64,
+        the same light). Its errors are measured on the rows, not from the float32 Gram matrix, whose
+        L'GL - 2h'L + b'b cancels."""
+        from dataclasses import replace
+
+        return self if self.precision == "single" else replace(self, precision="single", memo=OrderedDict())
 
     def head(self, n: int, precision: str | None = None) -> "RowsPart":
         """The first n rows, standing for the same pixels (weights scaled up): a smaller sample when
@@ -596,6 +646,9 @@ class UnionPart:
 
     def combine(self, other):
         return UnionPart(self.parts + (other,))
+
+    def in_single(self) -> "UnionPart":
+        return UnionPart(tuple(p.in_single() for p in self.parts))
 
     def with_scales(self, scales, ks_scales=None):
         return UnionPart(tuple(p.with_scales(scales, ks_scales) for p in self.parts))
