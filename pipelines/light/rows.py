@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 import weakref
 
 import numpy as np
@@ -121,9 +121,11 @@ class Pyramid:
         return out
 
 
+@lru_cache(maxsize=16)
 def _leaf_plan(tree: HaarTree) -> list:
     """The tree's leaves grouped by (level, tile): [(their columns in `leaves()` order, tile, level,
-    their block index in the tile's level, row-major (at the top level: the texel's in the tile))]."""
+    their block index in the tile's level, row-major (at the top level: the texel's in the tile))]
+    (kept for the latest trees: a projection asks for it once per block of rows; read only)."""
     plan = []
     for level, (cols, tile, i, j) in _leaf_groups(tree).items():
         for t in np.unique(tile):
@@ -134,7 +136,7 @@ def _leaf_plan(tree: HaarTree) -> list:
 
 def _in_tree_order(entry, order: np.ndarray):
     """A tree system (a SystemPart, or per part the pieces of `RowsPart._group_pieces`) projected
-    from leaf sums whose column k is leaf order[k], in `leaves()` order."""
+    from leaf sums whose column k is leaf order[k], put in `leaves()` order."""
     inv = np.empty_like(order)
     inv[order] = np.arange(len(order))
     if np.array_equal(inv, np.arange(len(inv))):
@@ -489,7 +491,7 @@ class RowsPart:
     def in_single(self) -> "RowsPart":
         """These rows with their systems accumulated in float32 (`precision`; a memo of their own): what
         the final light of a chosen tree is solved on (`bases.tree.finish`: half the time of float64,
-        the same light). Its errors are measured on the rows, not from the float32 Gram matrix, whose
+        a light that explains the rows as float64's does). Its errors are measured on the rows, not from the float32 Gram matrix, whose
         L'GL - 2h'L + b'b cancels."""
         from dataclasses import replace
 

@@ -134,8 +134,8 @@ def finish(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolu
     t0 = time.perf_counter()
     best = solution.levels[solution.chosen]
     both = ne.fit.combine(ne.held_out)
-    # (sampled rows: projected in float32, half the time of float64 for the same light; the exact
-    # route's dense parts stay as they are)
+    # (sampled rows: projected in float32, half the time of float64, the rows explained as well;
+    # the exact route's dense parts stay as they are)
     both = both.in_single() if hasattr(both, "in_single") else both
     P = haar.leaf_matrix(best.tree)
     x, info = solve_nonnegative(both.project_tree(best.tree), _leaf_guess(best, P))
