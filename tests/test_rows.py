@@ -205,19 +205,28 @@ def test_an_intermediate_light_finished_is_the_all_pixel_solve(mitsuba_scene):
     assert done.held_out_rmse == lazy.held_out_rmse and done.chosen == lazy.chosen
 
 
-def test_the_final_light_solved_in_single_precision_fits_as_the_double_ones(mitsuba_scene):
+def test_the_final_light_solved_in_single_precision_fits_as_the_double_ones(mitsuba_scene, monkeypatch):
     """`finish` projects the chosen tree of the sampled rows in float32 (half the time of float64):
     the light it solves explains every row of the system as the light of the float64 system does
     (the reference), its residuals measured on the rows."""
     from pipelines.light import haar
+    from pipelines.light.rows import RowsPart
     from pipelines.light.solution import solve_nonnegative
+
+    seen = []
+    system_of = RowsPart._system
+    monkeypatch.setattr(RowsPart, "_system", lambda self, *a, **k: seen.append(self.precision) or system_of(
+        self, *a, **k))
 
     scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
     photo = images.read_image(scene.path / "image.exr")
     options = SolveOptions()
     values, usable, held = prepare_photo(vis, photo, options)
     system = _Systems(vis, values, usable, held, options, _quiet()).system(Material())
-    done = bases.finish(system, vis.cube, bases.solve(system, vis.cube, all_pixels=False))
+    lazy = bases.solve(system, vis.cube, all_pixels=False)
+    seen.clear()
+    done = bases.finish(system, vis.cube, lazy)
+    assert seen and set(seen) == {"single"}  # (the fit and held-out rows, projected in float32)
     both = system.fit.combine(system.held_out)
     assert {p.precision for p in both.parts} == {"double"}
     assert {p.precision for p in both.in_single().parts} == {"single"}
@@ -238,7 +247,7 @@ def test_leaf_sums_in_leaf_order_are_the_tree_orders_reordered(mitsuba_scene):
     columns in `leaf_order`; both are the rows summed over each leaf, and a tree system projected
     from them is the one of the rows' leaf sums in tree order."""
     from pipelines.light import haar
-    from pipelines.light.rows import RowsPart, _gram, leaf_order
+    from pipelines.light.rows import Pyramid, RowsPart, _gram, leaf_order
 
     _, vis = _small_vis(mitsuba_scene, resolution=16)
     rng = np.random.default_rng(5)
@@ -255,11 +264,21 @@ def test_leaf_sums_in_leaf_order_are_the_tree_orders_reordered(mitsuba_scene):
         np.testing.assert_array_equal(D.leaf_sums(tree, slice(100, 300), grouped=True),
                                       A[100:300][:, leaf_order(tree)])
         w = rng.uniform(0.5, 2.0, len(rows))
-        part = RowsPart(D, None, np.array([0.8, 0.6, 0.4]), np.zeros(3), rng.uniform(0, 1, (len(rows), 3)), w,
-                        len(rows))
-        G = part.project_tree(tree).G
+        b = rng.uniform(0, 1, (len(rows), 3))
+        part = RowsPart(D, None, np.array([0.8, 0.6, 0.4]), np.zeros(3), b, w, len(rows))
+        got = part.project_tree(tree)
         ref = _gram(A.astype(np.float64) * np.sqrt(w)[:, None] * 0.8)
-        np.testing.assert_allclose(G, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_allclose(got.G, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_allclose(got.h[:, 0], 0.8 * A.astype(np.float64).T @ (w * b[:, 0]), rtol=1e-6)
+        # a glossy material's rows grouped by part (the pieces of each part, put in tree order) give
+        # the system of the dense projection through the leaf matrix
+        S = Pyramid(np.ascontiguousarray(D.rows[:, ::-1]), vis.cube.tile_sizes)
+        grouped = RowsPart(D, S, np.array([0.8, 0.6, 0.4]), np.array([0.3, 0.2, 0.1]), b, w, len(rows),
+                           group=rng.integers(0, 2, len(rows)), group_scales=np.array([[1.0] * 3, [0.5, 0.7, 0.9]]))
+        dense = grouped.project(haar.leaf_matrix(tree))
+        tree_sys = grouped.project_tree(tree)
+        np.testing.assert_allclose(tree_sys.G, dense.G, rtol=1e-5, atol=1e-6 * np.abs(dense.G).max())
+        np.testing.assert_allclose(tree_sys.h, dense.h, rtol=1e-5, atol=1e-6 * np.abs(dense.h).max())
 
 
 def _quiet():

@@ -226,7 +226,8 @@ class RowsPart:
     b : (n, C) photo values; w : (n,) weights (pixels each row stands for).
     n_pixels : the pixels these rows stand for (what the diagnostics count).
     precision : "double" accumulates the projected systems in float64; "single" in float32 (half the
-        time: good enough to choose a model size, not for the final light).
+        time: the exploration's head, and the final light's `finish`, whose residuals come from the
+        rows; the reflectance rounds' systems stay in float64, their fit errors taken from G).
     """
 
     D: Pyramid
@@ -650,7 +651,7 @@ class UnionPart:
         return UnionPart(self.parts + (other,))
 
     def in_single(self) -> "UnionPart":
-        return UnionPart(tuple(p.in_single() for p in self.parts))
+        return UnionPart(tuple(p.in_single() if hasattr(p, "in_single") else p for p in self.parts))
 
     def with_scales(self, scales, ks_scales=None):
         return UnionPart(tuple(p.with_scales(scales, ks_scales) for p in self.parts))
