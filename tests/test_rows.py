@@ -185,11 +185,7 @@ def test_an_intermediate_light_finished_is_the_all_pixel_solve(mitsuba_scene):
     controller's intermediate lights: a reflectance round re-solves them, a bright-direction cast
     solves them again); `finish` re-solves it on every pixel of its system: the light `solve` gives
     at once, no worse over all pixels, its levels and held-out errors unchanged."""
-    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
-    photo = images.read_image(scene.path / "image.exr")
-    options = SolveOptions()
-    values, usable, held = prepare_photo(vis, photo, options)
-    system = _Systems(vis, values, usable, held, options, _quiet()).system(Material())
+    vis, system = _bunny_system(mitsuba_scene)
     lazy = bases.solve(system, vis.cube, all_pixels=False)
     full = bases.solve(system, vis.cube)
     assert not lazy.details["all_pixels"] and full.details["all_pixels"]
@@ -218,11 +214,7 @@ def test_the_final_light_solved_in_single_precision_fits_as_the_double_ones(mits
     monkeypatch.setattr(RowsPart, "_system", lambda self, *a, **k: seen.append(self.precision) or system_of(
         self, *a, **k))
 
-    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
-    photo = images.read_image(scene.path / "image.exr")
-    options = SolveOptions()
-    values, usable, held = prepare_photo(vis, photo, options)
-    system = _Systems(vis, values, usable, held, options, _quiet()).system(Material())
+    vis, system = _bunny_system(mitsuba_scene)
     lazy = bases.solve(system, vis.cube, all_pixels=False)
     seen.clear()
     done = bases.finish(system, vis.cube, lazy)
@@ -279,6 +271,15 @@ def test_leaf_sums_in_leaf_order_are_the_tree_orders_reordered(mitsuba_scene):
         tree_sys = grouped.project_tree(tree)
         np.testing.assert_allclose(tree_sys.G, dense.G, rtol=1e-5, atol=1e-6 * np.abs(dense.G).max())
         np.testing.assert_allclose(tree_sys.h, dense.h, rtol=1e-5, atol=1e-6 * np.abs(dense.h).max())
+
+
+def _bunny_system(mitsuba_scene):
+    """(visibility, the sampled Lambertian system) of a third of bunny_sun's pixels at R = 16."""
+    scene, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
+    photo = images.read_image(scene.path / "image.exr")
+    options = SolveOptions()
+    values, usable, held = prepare_photo(vis, photo, options)
+    return vis, _Systems(vis, values, usable, held, options, _quiet()).system(Material())
 
 
 def _quiet():
