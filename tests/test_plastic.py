@@ -152,8 +152,9 @@ def test_transport_integrates_the_lobe(distribution):
 def test_grazing_views_keep_the_lobes_energy(distribution, monkeypatch):
     """The texel-sampled lobe at views towards N.v -> 0 (silhouette pixels with interpolated shading
     normals): uncapped, summed over every texel unshadowed, it reflects many times the coating's
-    specular albedo E_s (measured at R = 32: up to 2x at N.v = 0.05, 3-470x at N.v = 0.004 for alpha
-    0 .. 0.3); capped, a grazing view's lobe is min(that, E_s) row by row and the other views are
+    specular albedo E_s (measured at R = 32 with the texel's blur across the plane of incidence
+    mapped through v.h: up to 2x at N.v = 0.05, up to 4-180x at N.v = 0.004-0.01 for alpha 0 .. 0.3,
+    by the view's direction); capped, a grazing view's lobe is min(that, E_s) row by row and the other views are
     untouched."""
     cube = CubeMap(32)
     rng = np.random.default_rng(3)
@@ -174,7 +175,7 @@ def test_grazing_views_keep_the_lobes_energy(distribution, monkeypatch):
             raw = render.plastic_specular_transport(V, n, views, cube, m)
         E = np.interp(mus, mf._MU, mf.specular_albedo_table(alpha, IOR, distribution))
         total, raw_total = capped.sum(axis=1), raw.sum(axis=1)
-        assert np.all(raw_total[mus == 0.004] > 2 * E[mus == 0.004]), (alpha, raw_total / E)  # the run-away
+        assert np.max(raw_total[mus == 0.004] / E[mus == 0.004]) > 3, (alpha, raw_total / E)  # the run-away
         np.testing.assert_allclose(total[graze], np.minimum(raw_total, E)[graze], rtol=1e-4)
         np.testing.assert_array_equal(capped[~graze], raw[~graze])
 

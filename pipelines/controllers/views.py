@@ -60,13 +60,10 @@ def combine(datas: list, names: list, shapes: list):
     starts = np.concatenate([[0], np.cumsum([d.n_pixels for d in datas])])
     if len(datas) == 1:
         return first, Layout(list(names), starts, list(shapes), stride)
-    fields = {}
-    for name in ("position", "normal", "geometric_normal", "view", "face"):
-        fields[name] = np.concatenate([getattr(d.samples, name) for d in datas])
     pixel = [np.asarray(d.samples.pixel).copy() for d in datas]
     for k, p in enumerate(pixel):
         p[:, 0] += k * stride
-    samples = PixelSamples(pixel=np.concatenate(pixel).astype(np.int32), **fields)
+    samples = PixelSamples.concatenate([d.samples for d in datas], np.concatenate(pixel).astype(np.int32))
     stored = np.concatenate([np.asarray(d.stored) for d in datas])
     method = "adaptive" if any(d.method == "adaptive" for d in datas) else first.method
     return (VisibilityData(samples, first.cube, first.supersample, stored, method),
@@ -163,13 +160,10 @@ def observability_by_view(per: np.ndarray, layout: Layout) -> dict:
 
 def subset(vis, rows: np.ndarray):
     """The VisibilityData of some rows (indices) of `vis`."""
-    from ..geometry.camera import PixelSamples
     from ..geometry.visibility import VisibilityData
 
     rows = np.asarray(rows)
-    s = vis.samples
-    samples = PixelSamples(*(np.asarray(getattr(s, f))[rows] for f in
-                             ("pixel", "position", "normal", "geometric_normal", "view", "face")))
+    samples = vis.samples.take(rows)
     return VisibilityData(samples, vis.cube, vis.supersample, np.asarray(vis.stored)[rows], vis.method)
 
 

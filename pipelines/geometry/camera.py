@@ -93,7 +93,10 @@ class PixelSamples:
     """Surface samples of the used pixels, in world coordinates.
 
     pixel : (P, 2) int32 (row, col); position, normal (smooth shading), geometric_normal (facing
-    the camera), view (unit, towards the camera): (P, 3) float64; face : (P,) int64.
+    the camera), view (unit, towards the camera): (P, 3) float64; face : (P,) int64;
+    normal_jacobian : (P, 3, 2) float32 or None, how the shading normal turns across the pixel: its
+    change over one pixel along the image's columns (u) and rows (v) (`normal_jacobian`), which
+    widens a glossy lobe seen through the pixel (`microfacet.footprint_roughness`).
     """
 
     pixel: np.ndarray
@@ -102,9 +105,27 @@ class PixelSamples:
     geometric_normal: np.ndarray
     view: np.ndarray
     face: np.ndarray
+    normal_jacobian: np.ndarray | None = None
+
+    FIELDS = ("pixel", "position", "normal", "geometric_normal", "view", "face", "normal_jacobian")
 
     def __len__(self) -> int:
         return len(self.pixel)
+
+    def take(self, rows) -> "PixelSamples":
+        """The samples of some rows (indices, a mask or a slice)."""
+        return PixelSamples(**{f: None if getattr(self, f) is None else np.asarray(getattr(self, f))[rows]
+                               for f in self.FIELDS})
+
+    @staticmethod
+    def concatenate(parts: list["PixelSamples"], pixels: np.ndarray) -> "PixelSamples":
+        """Several views' samples one after the other, with their `pixels` (row, col) as given."""
+        fields = {f: np.concatenate([getattr(s, f) for s in parts]) for f in PixelSamples.FIELDS[1:-1]}
+        jac = None
+        if any(s.normal_jacobian is not None for s in parts):  # (a view without it: its pixels' normals do not turn)
+            jac = np.concatenate([np.zeros((len(s), 3, 2), np.float32) if s.normal_jacobian is None
+                                  else s.normal_jacobian for s in parts])
+        return PixelSamples(pixel=pixels, **fields, normal_jacobian=jac)
 
 
 def _edges(hit: np.ndarray, depth: np.ndarray, face_normal_dot: np.ndarray, tolerance: float) -> np.ndarray:
@@ -200,6 +221,55 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
     # Surfaces seen from their back side (normals pointing away from the camera) reflect nothing
     # under one-sided shading, as in physically based renderers; count them for the report.
     diagnostics["back_facing"] = int(np.count_nonzero(np.einsum("ij,ij->i", normal, view) < 0))
+    jac = normal_jacobian(camera, pose, mesh, rows[sel], cols[sel], f, position)
     samples = PixelSamples(pixel=np.column_stack([rows[sel], cols[sel]]).astype(np.int32), position=position,
-                           normal=normal, geometric_normal=geo, view=view, face=f)
+                           normal=normal, geometric_normal=geo, view=view, face=f, normal_jacobian=jac)
     return samples, diagnostics
+
+
+MAX_NORMAL_TURN = 1.0  # the normal's change across one pixel is capped here (a facet seen edge-on)
+
+
+def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, cols: np.ndarray, face: np.ndarray,
+                    position: np.ndarray) -> np.ndarray:
+    """(P, 3, 2) float32: how the unit shading normal changes across each pixel, d n / d u (one
+    column) and d n / d v (one row), on the pixel's own facet.
+
+    On a facet the interpolated normal sum_i b_i n_i is affine in the surface point, and the point
+    moves with the pixel as the facet's plane cut by the rays through the pixel's neighbours
+    (half a pixel either side: a ray differential, lens distortion included). A low-poly mesh with
+    smooth normals turns its normal by up to ~0.2 per pixel where it curves fast, and a highlight
+    there is the average of the lobe over those normals (what a renderer's pixel filter sees)."""
+    tri = mesh.faces[face]
+    p0, p1, p2 = (mesh.vertices[tri[:, i]] for i in range(3))
+    n0, n1, n2 = (mesh.vertex_normals[tri[:, i]] for i in range(3))
+    E = np.stack([p1 - p0, p2 - p0], axis=2)  # (P, 3, 2)
+    M = np.stack([n1 - n0, n2 - n0], axis=2)
+    g = np.cross(E[:, :, 0], E[:, :, 1])
+    area2 = np.linalg.norm(g, axis=1)
+    ok = area2 > 1e-12 * np.maximum(np.einsum("pij,pij->p", E, E), 1e-300)
+    g = g / np.maximum(area2, 1e-300)[:, None]
+    EtE = np.einsum("pki,pkj->pij", E, E)
+    EtE[~ok] = np.eye(2)
+    pinv = np.linalg.solve(EtE, np.transpose(E, (0, 2, 1)))  # (P, 2, 3): barycentrics (b1, b2) per unit of point
+    bary = np.einsum("pij,pj->pi", pinv, position - p0)
+    raw = n0 + np.einsum("pij,pj->pi", M, bary)  # the interpolated normal before normalising
+    length = np.maximum(np.linalg.norm(raw, axis=1), 1e-12)
+    unit = raw / length[:, None]
+    out = np.zeros((len(face), 3, 2), np.float64)
+    o = pose.camera_centre
+    for k, (dr, dc) in enumerate(((0.0, 0.5), (0.5, 0.0))):
+        ends = []
+        for sgn in (-1.0, 1.0):
+            _, d = pixel_rays(camera, pose, rows + sgn * dr, cols + sgn * dc)
+            den = np.einsum("pk,pk->p", d, g)
+            s = np.einsum("pk,pk->p", p0 - o, g) / np.where(np.abs(den) > 1e-9, den, np.inf)
+            ends.append(o + s[:, None] * d)
+        dx = ends[1] - ends[0]  # the surface point's move across the pixel, on the facet's plane
+        dn = np.einsum("pij,pjk,pk->pi", M, pinv, dx)  # of the raw normal
+        dn -= np.einsum("pk,pk->p", dn, unit)[:, None] * unit  # of the unit normal
+        out[:, :, k] = dn / length[:, None]
+    out[~ok] = 0.0
+    turn = np.linalg.norm(out, axis=1)  # (P, 2)
+    out *= (np.minimum(turn, MAX_NORMAL_TURN) / np.maximum(turn, 1e-300))[:, None, :]
+    return np.nan_to_num(out).astype(np.float32)

@@ -2,7 +2,7 @@
 
 Layout (all datasets chunked by pixel rows and compressed):
   attrs: format, resolution, hemisphere, supersample, n_pixels, n_texels, encoding ('bits'|'fraction')
-  pixels/{pixel, position, normal, geometric_normal, view, face}
+  pixels/{pixel, position, normal, geometric_normal, view, face, normal_jacobian (optional)}
   texels/{direction, solid_angle}
   visibility: (P, ceil(N/8)) uint8 bit-packed (little bit order) or (P, N) uint8 fractions
 """
@@ -21,7 +21,7 @@ from ..light.cubemap import CubeMap
 from .files import h5_file
 
 FORMAT = "wavelight-visibility-1"
-PIXEL_FIELDS = ("pixel", "position", "normal", "geometric_normal", "view", "face")
+PIXEL_FIELDS = PixelSamples.FIELDS
 
 
 def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, supersample: int,
@@ -36,6 +36,8 @@ def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, sup
                         "encoding": "bits" if supersample == 1 else "fraction", **(attrs or {})})
         for name in PIXEL_FIELDS:
             arr = getattr(samples, name)
+            if arr is None:
+                continue
             f.create_dataset(f"pixels/{name}", data=arr, compression="gzip", compression_opts=4, shuffle=True)
         f.create_dataset("texels/direction", data=cube.directions)
         f.create_dataset("texels/solid_angle", data=cube.solid_angles)
@@ -60,7 +62,7 @@ def read_visibility(path: str | Path, in_memory: bool = True) -> VisibilityData:
         f = h5py.File(path, "r")
         if f.attrs.get("format") != FORMAT:
             raise InputError(f"not a {FORMAT} file", path, "delete it; the next run rebuilds it")
-        samples = PixelSamples(**{name: f[f"pixels/{name}"][:] for name in PIXEL_FIELDS})
+        samples = PixelSamples(**{name: f[f"pixels/{name}"][:] for name in PIXEL_FIELDS if f"pixels/{name}" in f})
         cube = CubeMap(int(f.attrs["resolution"]), bool(f.attrs["hemisphere"]))
         if cube.n_texels != int(f.attrs["n_texels"]):
             raise InputError("texel count does not match its layout", path, "delete it; the next run rebuilds it")

@@ -712,9 +712,7 @@ class TransportRows:
         from ..geometry.visibility import VisibilityData
 
         rows = np.asarray(rows, np.int64)
-        s = vis.samples
-        sub = type(s)(**{f: getattr(s, f)[rows] for f in ("pixel", "position", "normal", "geometric_normal", "view",
-                                                         "face")})
+        sub = vis.samples.take(rows)
         self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows])
         self.rows = rows
         self._diffuse: Pyramid | None = None
@@ -800,6 +798,7 @@ class TransportRows:
         """New visibility for some of these rows (`index` into them; `stored` their new stored
         rows): the kept transports are rebuilt for those rows alone, in place."""
         from ..geometry.visibility import decode
+        from ..model.microfacet import samples_footprint
         from ..model.render import diffuse_transport, specular_transport
 
         index = np.asarray(index, np.int64)
@@ -818,7 +817,8 @@ class TransportRows:
                 if material is not None:  # (a coated D: the matte rows' plain)
                     self._matte(new, None, V[sel], index[sel], material, weight)
             else:
-                new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material)
+                new = specular_transport(V[sel], normal[sel], view[sel], v.cube, material,
+                                         footprint=samples_footprint(v.samples, index[sel], material))
                 self._matte(None, new, V[sel], index[sel], material, weight)
             pyramid.set_rows(index[sel], new)
 
@@ -873,6 +873,7 @@ class TransportRows:
             if tuple(kept_lobe) == lobe and kept_n > n:
                 return pyramid.head(n)
         if key not in self._specular:
+            from ..model.microfacet import samples_footprint
             from ..model.render import specular_transport
 
             self._specular = {}  # (the lobe before: its memory goes before the new one is built)
@@ -882,7 +883,7 @@ class TransportRows:
                     break
                 sl = slice(sl.start, min(sl.stop, n))
                 specular_transport(V[: sl.stop - sl.start], self.vis.samples.normal[sl], self.vis.samples.view[sl],
-                                   self.vis.cube, unit, out=S[sl])
+                                   self.vis.cube, unit, out=S[sl], footprint=samples_footprint(self.vis.samples, sl, unit))
                 self._matte(None, S[sl], V[: sl.stop - sl.start], np.arange(sl.start, sl.stop), unit)
             self._specular = {key: (self._built_one(Pyramid(S, self.vis.cube.tile_sizes), unit, "specular"), unit)}
         return self._specular[key][0]

@@ -25,6 +25,7 @@ from scipy.linalg import blas
 
 from ..geometry.visibility import VisibilityData
 from ..model.materials import Material
+from ..model.microfacet import samples_footprint
 from ..model.render import transport
 from ..threads import blas_threads
 
@@ -198,7 +199,8 @@ def build_normal_equations(vis: VisibilityData, photo: np.ndarray, material: Mat
     def block(sl: slice) -> dict:
         """Everything one block of pixel rows adds to the two parts (runs in a worker thread)."""
         V = vis.block(sl)
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl])
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl],
+                         samples_footprint(s, sl, material))
         bb = b[sl]
         add = {}
         for name, sel in (("fit", use[sl] & ~held_out[sl]), ("held_out", use[sl] & held_out[sl])):

@@ -95,10 +95,7 @@ def insert(camera: Camera, pose: Pose, scene_mesh: Mesh, obj: Mesh, light: np.nd
 
 
 def _subset_samples(samples, rows: np.ndarray):
-    from ..geometry.camera import PixelSamples
-
-    return PixelSamples(*(getattr(samples, f)[rows] for f in ("pixel", "position", "normal", "geometric_normal", "view",
-                                                              "face")))
+    return samples.take(rows)
 
 
 def _scene_visibility(samples, scene_vis, cube: CubeMap, backend, progress=None) -> np.ndarray:

@@ -183,6 +183,7 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
     m = cube.vector_solid_angles[lit].astype(np.float32)
     w = cube.solid_angles[lit].astype(np.float32)[None, :]
     nv = np.einsum("pk,pk->p", s.normal[rows], s.view[rows])
+    footprint = mf.samples_footprint(s, rows, material)  # (the roughness^2 each pixel's footprint adds)
     L32 = L[lit].astype(np.float32)
     # blocks of stored rows (the selected ones of each: `rows` is sorted), on both cores
     firsts = np.arange(0, P, 1024)
@@ -209,7 +210,8 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
                 Lc = np.broadcast_to(L32[None, :, c], D.shape).ravel()
                 Q[k, :, c] += np.bincount(idx, lo_w * Lc, minlength=nb * T).reshape(nb, T)
                 Q[k, :, c] += np.bincount(idx + 1, hi_w * Lc, minlength=nb * T + 1)[: nb * T].reshape(nb, T)
-            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior)
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd, nv[k, None].astype(np.float32), vw @ dirs.T, w, material.ior,
+                                                         footprint=None if footprint is None else footprint[k])
             arrays["A"][k] = A * V
             arrays["x2"][k], arrays["y2"][k], arrays["wx"][k], arrays["wy"][k], arrays["t2d"][k] = x2, y2, wx, wy, t2d
 
@@ -222,7 +224,8 @@ def plastic_data(vis, photo: np.ndarray, light: np.ndarray, material: Material, 
         nrm = s.normal[g_rows].astype(np.float32)
         graze_factors = mf.lobe_factors(nrm @ all_dirs.T, nv[graze, None].astype(np.float32),
                                         s.view[g_rows].astype(np.float32) @ all_dirs.T,
-                                        cube.solid_angles.astype(np.float32)[None, :], material.ior)
+                                        cube.solid_angles.astype(np.float32)[None, :], material.ior,
+                                        footprint=None if footprint is None else footprint[graze])
     values = np.asarray(photo, np.float64)[rows]
     if albedo is not None:  # per-pixel relative albedo (parts, textures) under the base
         a_rows = np.asarray(albedo, np.float64)[rows]

@@ -78,7 +78,8 @@ def specular_factors(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube
 
 
 def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-              material: Material, specular: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+              material: Material, specular: np.ndarray | None = None,
+              footprint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Transport blocks for a set of pixels: the light texels' contributions per unit radiance.
 
     The radiance of a texel is constant over it (that is what a texel value means), so its
@@ -98,6 +99,8 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
         Lambertian (a matte part of a scene whose other parts are glossy: no lobe, and under `plastic`
         no coating: plain D), else the factor on its ks (its part's specular weight); None: every
         pixel has it at weight 1.
+    footprint : (P, 2) the roughness^2 each pixel's footprint adds to a microfacet lobe
+        (`microfacet.samples_footprint`), or None.
 
     Returns
     -------
@@ -107,7 +110,7 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
     D = diffuse_transport(V, normals, cube, material, views)
     if not material.specular:
         return D, None
-    S = specular_transport(V, normals, views, cube, material)
+    S = specular_transport(V, normals, views, cube, material, footprint=footprint)
     if specular is not None:
         matte_rows(D, S, V, normals, cube, material, specular)
     return D, S
@@ -171,9 +174,11 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, materia
 
 
 def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-                               material: Material, out: np.ndarray | None = None) -> np.ndarray:
+                               material: Material, out: np.ndarray | None = None,
+                               footprint: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the coating's lobe (ks = 1): V w_i F(v.h) D(h) G1(v) G1(d_i) / (4 N.v) at the texel
-    centres, with the texel-widened roughness (`microfacet.lobe_factors`, `lobe_values`), views with
+    centres, with the roughness widened by the texel and by the pixel's footprint (`footprint`: (P, 2)
+    or None; `microfacet.lobe_factors`, `lobe_values`), views with
     N.v < GRAZING_NV capped at the coating's specular albedo (`microfacet.grazing_cap`); blocks of
     rows on both cores (in `out` when given: (P, N) float32)."""
     P, N = len(normals), cube.n_texels
@@ -195,7 +200,8 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
             k = sl.stop - sl.start
             np.matmul(nrm[sl], d.T, out=nd[:k])
             np.matmul(vw[sl], d.T, out=vd[:k])
-            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta)
+            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta,
+                                                         footprint=None if footprint is None else footprint[sl])
             o = out[sl]
             mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
             o *= A
@@ -212,7 +218,8 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
 
 
 def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
-                       material: Material, out: np.ndarray | None = None) -> np.ndarray:
+                       material: Material, out: np.ndarray | None = None,
+                       footprint: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the specular part of `transport` (ks = 1) for the material's model and n:
     V w_i max(0, N.d_i) norm(n) c_i^n with c the lobe cosine, 0 where c <= 0 (`specular_factors`).
 
@@ -220,7 +227,7 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     as `specular_factors` to float32 rounding, several times faster (no (P, N) temporaries; numpy's
     float32 power is not vectorised, exp and log are). In `out` when given ((P, N) float32)."""
     if material.model == PLASTIC:
-        return plastic_specular_transport(V, normals, views, cube, material, out)
+        return plastic_specular_transport(V, normals, views, cube, material, out, footprint)
     P, N = len(normals), cube.n_texels
     model = material.model
     if model not in ("blinn-phong", "phong", "phong-classic"):
@@ -287,7 +294,8 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     Lf = L.astype(np.float32)
     s = vis.samples
     for sl, V in vis.blocks(rows, raw=True):
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl])
+        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl],
+                         mf.samples_footprint(s, sl, material))
         out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
         if S is not None:
             out[sl] += ks * (S @ Lf)

@@ -289,8 +289,7 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
     footprint = np.empty(data.n_pixels)
     for k, (v, cam) in enumerate(zip(views, cameras)):
         sl = layout.rows(k)
-        rows = type(s)(**{f: getattr(s, f)[sl] for f in ("pixel", "position", "normal", "geometric_normal", "view",
-                                                           "face")})
+        rows = s.take(sl)
         footprint[sl] = pm.pixel_footprint(rows, cam, read_pose(v.pose))
     base, part = pm.pixel_base(sp, mesh, s.face, s.position, footprint)
     pm.choose_reference(sp, part)

@@ -23,7 +23,7 @@ from ..cache import Decision, Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..scene import SceneFiles, View, photo_view, require
 
-VERSION = 4  # 4: hit points located in float64 on the hit face, shadow offset from float32 precision (issue 17)
+VERSION = 5  # 5: each pixel's normal Jacobian (the normal's turn across the pixel: a glossy lobe's footprint widening); 4: hit points located in float64 on the hit face, shadow offset from float32 precision (issue 17)
 KEEP = 4  # visibility results kept per view
 CHUNK_PIXELS = 1024  # rows per resumable chunk of the exact method
 
