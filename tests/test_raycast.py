@@ -88,8 +88,7 @@ def visibility(backends, samples):
 
 
 def sample_subset(s: PixelSamples, idx) -> PixelSamples:
-    return PixelSamples(*(getattr(s, f)[idx] for f in ("pixel", "position", "normal", "geometric_normal",
-                                                        "view", "face")))
+    return s.take(idx)
 
 
 # -- analytic occluders --------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from .files import h5_file
 
 FORMAT = "wavelight-visibility-1"
 PIXEL_FIELDS = PixelSamples.FIELDS
+OPTIONAL_FIELDS = ("normal_jacobian",)  # (files written before it: the samples have none)
 
 
 def write_visibility(path: str | Path, samples: PixelSamples, cube: CubeMap, supersample: int,
@@ -62,7 +63,8 @@ def read_visibility(path: str | Path, in_memory: bool = True) -> VisibilityData:
         f = h5py.File(path, "r")
         if f.attrs.get("format") != FORMAT:
             raise InputError(f"not a {FORMAT} file", path, "delete it; the next run rebuilds it")
-        samples = PixelSamples(**{name: f[f"pixels/{name}"][:] for name in PIXEL_FIELDS if f"pixels/{name}" in f})
+        samples = PixelSamples(**{name: f[f"pixels/{name}"][:] for name in PIXEL_FIELDS
+                                  if name not in OPTIONAL_FIELDS or f"pixels/{name}" in f})
         cube = CubeMap(int(f.attrs["resolution"]), bool(f.attrs["hemisphere"]))
         if cube.n_texels != int(f.attrs["n_texels"]):
             raise InputError("texel count does not match its layout", path, "delete it; the next run rebuilds it")
