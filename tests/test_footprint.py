@@ -23,16 +23,6 @@ from pipelines.model import microfacet as mf
 IOR = 1.49
 
 
-def _look_at(eye, target) -> Pose:
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    R = np.stack([r, np.cross(f, r), f])  # OpenCV: x right, y down, z forward
-    return Pose(R, -R @ eye)
-
-
 def _ball_on_ground(scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> Mesh:
     """A coarse icosphere (80 faces: a few pixels turn the normal a lot) on a flat ground square."""
     import trimesh
@@ -52,7 +42,7 @@ CAMERA = Camera(160, 120, 150.0, 150.0, 79.5, 59.5)
 def _samples(scale: float = 1.0, offset=(0.0, 0.0, 0.0)):
     mesh = _ball_on_ground(scale, offset)
     o = np.asarray(offset, float)
-    pose = _look_at(o + scale * np.array([3.0, -4.0, 3.0]), o + scale * np.array([0.0, 0.0, 0.8]))
+    pose = Pose.look_at(o + scale * np.array([3.0, -4.0, 3.0]), o + scale * np.array([0.0, 0.0, 0.8]))
     samples, _ = pixel_samples(CAMERA, pose, mesh, make_backend(mesh), edge_margin=1)
     return samples, mesh
 

@@ -38,13 +38,7 @@ RATIOS = [2, 10, 100, 1e3, 1e4, 1e5]
 SCALES = [1e-3, 1.0, 1e3]
 
 
-def look_at(eye, target) -> Pose:
-    f = np.asarray(target, float) - np.asarray(eye, float)
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    R = np.stack([r, np.cross(f, r), f])  # OpenCV: x right, y down, z forward
-    return Pose(R, -R @ np.asarray(eye, float))
+look_at = Pose.look_at
 
 
 def sphere_view(ratio: float, scale: float):

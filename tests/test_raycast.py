@@ -45,15 +45,7 @@ N_GROUND_FACES = 2 * GROUND_N * GROUND_N
 CAMERA = Camera(64, 48, 45.0, 45.0, 31.5, 23.5)
 
 
-def look_at(eye, target) -> Pose:
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    d = np.cross(f, r)
-    R = np.stack([r, d, f])  # OpenCV: x right, y down, z forward
-    return Pose(R, -R @ eye)
+look_at = Pose.look_at
 
 
 POSE = look_at([2.0, -2.6, 2.4], [0.0, 0.0, 0.3])

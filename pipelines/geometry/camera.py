@@ -56,6 +56,18 @@ class Pose:
     def to_json(self) -> dict:
         return {"R": self.R.tolist(), "t": self.t.tolist(), **self.extra}
 
+    @classmethod
+    def look_at(cls, eye, target) -> "Pose":
+        """A camera at `eye` looking at `target`, +Z up in the image (OpenCV axes: x right, y down,
+        z forward); `eye - target` must not be vertical."""
+        eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+        f = target - eye
+        f /= np.linalg.norm(f)
+        r = np.cross(f, [0.0, 0.0, 1.0])
+        r /= np.linalg.norm(r)
+        R = np.stack([r, np.cross(f, r), f])
+        return cls(R, -R @ eye)
+
 
 def project(camera: Camera, pose: Pose, points: np.ndarray) -> np.ndarray:
     """(n, 3) world points -> (n, 2) pixel coordinates (u, v) with distortion."""
