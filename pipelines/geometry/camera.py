@@ -239,8 +239,6 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
     return samples, diagnostics
 
 
-
-
 def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, cols: np.ndarray, face: np.ndarray,
                     position: np.ndarray) -> np.ndarray:
     """(P, 3, 2) float32: how the unit shading normal changes across each pixel, d n / d u (one

@@ -59,7 +59,7 @@ BEAT_MARGIN = 0.05  # a trailing auto candidate stops once its error heads for t
 # plastic's runner-up distribution is alternated too when its first light's held-out error is within
 # this of the best one's: one light solve cannot tell GGX's long tails from Beckmann's (spot_plastic_sun,
 # GGX alpha 0.15: 2.268 against Beckmann's 2.250 %; Beckmann alternated alone ends at alpha 0.133, held-out
-# 2.05 %, the glossy probe 6.6 %; GGX alternated too at alpha 0.146, held-out 1.71 %, glossy probe 1.7 %)
+# 2.05 %, the glossy probe 6.6 %; GGX alternated too wins at alpha 0.147, held-out 1.71 %, glossy probe 1.5 %)
 DISTRIBUTION_TIE = 0.05
 EARLY_REACH = 2.0  # `_reach`: before `_heads_for` can tell a ratio, each round left may gain this x the last step
 MAX_PAIRS = 48_000_000  # (pixel, lit texel) pairs held for the LM (2 float32 arrays: ~400 MB)
