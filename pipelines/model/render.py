@@ -299,6 +299,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
         out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
         if S is not None:
             out[sl] += ks * (S @ Lf)
+        D = S = V = None  # (a block's transport goes before the next one's is built: memory)
     return out
 
 
