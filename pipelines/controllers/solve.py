@@ -826,12 +826,13 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             last_round.clear()
             return None  # (its last step hardly moved it: the LM's ks under that light is the light's own)
         # the rows the round's light was solved on (a candidate's first light, solved before the
-        # others', on the same sample of rows built again; its lobe's transport is kept)
+        # others': the same sample of rows, its transports built again when another candidate's
+        # replaced them)
         t0 = time.perf_counter()
         system = last_round.get("system") if last_round.get("solution") is sol else None
         # (the system's transport rows go once the pieces are out; another candidate's, still kept
         # when this round's light is a first light solved before it, goes before this one is built:
-        # memory, teapot_sun_phong's peak of live arrays 1.34 -> 1.23 GB)
+        # memory, on teapot_sun_phong its peak of live arrays 1.34 -> 1.23 GB)
         last_round.clear()
         if system is None:
             system = systems.system(m, ROUND_ROWS)
@@ -1137,6 +1138,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                 if albedo is not None:
                     albedo.scales = scales
                 systems.robust(usable.astype(np.float64), values)
+                system = None  # (the robust solve's system goes before the plain one is built: memory)
                 system = systems.system(material)
                 robust_info["kept"] = False
                 robust_info.update(robust_counts(np.where(counted, 1.0, 0.0), counted, bound, clipped, values, relit,
