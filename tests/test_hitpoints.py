@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipelines.geometry.camera import Camera, Pose, pixel_rays, pixel_samples
+from pipelines.geometry.camera import Camera, Pose, mesh_hits, pixel_rays, pixel_samples
 from pipelines.geometry.mesh import place, sphere
 from pipelines.geometry.raycast import make_backend
 from pipelines.geometry.visibility import castable, compute_visibility
@@ -122,3 +122,17 @@ def test_shadow_origins_clear_the_float32_triangle(ratio):
     assert height.min() > 8 * ulp.max(), (height.min(), ulp.max())
     # and the offset is small: below 1e-5 of the radius (the old 1e-5 x scene size was 3.5e-5 here)
     assert height.max() < 1e-5 * radius
+
+
+@pytest.mark.parametrize("ratio", [2, 1e4])
+def test_mesh_hits_are_the_pixels_sampled_without_edge_margin(ratio):
+    """`mesh_hits` (what `mesh_coverage` fills for the outputs) is the set of pixels `pixel_samples`
+    keeps with no edge margin and no mask, near and far: ~pi RHO^2 of them, the rim included."""
+    camera, pose, mesh, _, _ = sphere_view(ratio, 1.0)
+    backend = make_backend(mesh)
+    hits = mesh_hits(camera, pose, backend)
+    samples, diag = pixel_samples(camera, pose, mesh, backend, edge_margin=-1)
+    sampled = np.zeros_like(hits)
+    sampled[samples.pixel[:, 0], samples.pixel[:, 1]] = True
+    assert hits.shape == (IMAGE, IMAGE) and np.array_equal(hits, sampled)
+    assert hits.sum() == diag["hit"] and 7700 < hits.sum() < 8100  # pi 50^2 = 7854

@@ -225,18 +225,14 @@ def scene_backend(mesh, name: str = "embree"):
     return kept[name]
 
 
-def mesh_coverage(view: View, camera, mesh, backend):
+def mesh_coverage(view: View, camera, backend):
     """(H, W) bool: the pixels of `view` whose centre ray hits the mesh and that its mask keeps
     (what a render covers when no edge margin is left out; `outputs.view_image` fills that margin)."""
-    import numpy as np
-
-    from pipelines.geometry.camera import pixel_samples
+    from pipelines.geometry.camera import mesh_hits
     from pipelines.io import images
     from pipelines.io.scene_files import read_pose
 
-    samples, _ = pixel_samples(camera, read_pose(view.pose), mesh, backend, None, edge_margin=-1)
-    cover = np.zeros((camera.height, camera.width), bool)
-    cover[samples.pixel[:, 0], samples.pixel[:, 1]] = True
+    cover = mesh_hits(camera, read_pose(view.pose), backend)
     if view.mask is not None:
         mask = images.read_mask(view.mask)
         if mask.shape == cover.shape:

@@ -188,6 +188,15 @@ def mesh_outline(camera: Camera, pose: Pose, mesh: Mesh, backend) -> np.ndarray:
     return _cast(camera, pose, mesh, backend)[-1]
 
 
+def mesh_hits(camera: Camera, pose: Pose, backend) -> np.ndarray:
+    """(H, W) bool: the pixels whose centre ray hits the mesh (`pixel_samples` with no edge margin
+    and no mask keeps exactly these), without building their samples."""
+    H, W = camera.height, camera.width
+    rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    o, d = pixel_rays(camera, pose, rows.ravel(), cols.ravel())
+    return (backend.first_hits(o, d)[1] >= 0).reshape(H, W)
+
+
 def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndarray | None = None,
                   edge_margin: int = 1, mask_path=None) -> tuple[PixelSamples, dict]:
     """Cast one ray per pixel centre and keep the used pixels.

@@ -159,7 +159,7 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
             values = values * gain  # (another photo of the scene: at its own exposure, as solve fitted it)
             backdrop, scale_ref = _display_photos(scene, opts, camera, ref if own_photo and ref_path == view.image else None)
             outputs = write_view(out, opts.name, values, data.samples.pixel, (camera.height, camera.width), backdrop,
-                                 opts.exposure, scale_ref, mesh_coverage(view, camera, backend.mesh, backend))
+                                 opts.exposure, scale_ref, mesh_coverage(view, camera, backend))
             summary = {"light": source, "rotate_deg": opts.rotate, "light_exposure_stops": opts.light_exposure,
                        "view": view.name, "view_exposure": gain, "material": material.to_json(),
                        "pixels": int(len(values)),

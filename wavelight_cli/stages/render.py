@@ -43,7 +43,7 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
             values, _ = render_view(data, light, material, backend)
             outputs = write_view(out, "render", values, data.samples.pixel, (camera.height, camera.width),
                                  None if photo is None else photo.pixels, exposure,
-                                 cover=mesh_coverage(photo_view(scene), camera, backend.mesh, backend))
+                                 cover=mesh_coverage(photo_view(scene), camera, backend))
             outputs += write_light(out, "render_light", light, data.cube)
             summary = {"pixels": int(len(values)), "mean_radiance": float(values.mean())}
             residual = out / "render_residual.png"

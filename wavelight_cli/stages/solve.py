@@ -138,6 +138,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                                      ConsoleProgress(console, "solve"), adaptive=data.method == "adaptive",
                                      held_out=held, albedo=albedo)
             m, sol, cube = result.material, result.solution, data.cube
+            result.context = None  # (the light's system: its transport rows go before the outputs are drawn, memory)
             outputs = write_light(out, "light", sol.light, cube, unobservable=result.unobservable)
             outputs.append(write_cross_heat_png(out / "observability.png", result.observability, cube, 1.0,
                                                 "sqrt(G_ii / max G_ii): how strongly the used pixels respond to "
@@ -164,7 +165,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
                 sl = layout.rows(k)
                 pix = layout.image_pixels(data.samples.pixel, k)
                 vdir = out if k == 0 else out / "views" / v.label
-                cover = mesh_coverage(v, cam, mesh, backend)
+                cover = mesh_coverage(v, cam, backend)
                 relit_k = result.relit[sl] * gains[k]  # (at the view's own exposure, as its photo)
                 outputs += write_view(vdir, "relit", relit_k, pix, (cam.height, cam.width), ph.pixels,
                                       exposure, cover=cover)
