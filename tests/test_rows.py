@@ -510,3 +510,23 @@ def test_lobe_pieces_give_the_system_of_any_ks_over_kd(mitsuba_scene, precision,
     assert lobe_pieces(tr.part(material, photo, weights, 5000, albedo=rng.uniform(0.5, 1.0, (500, 3))), tree) is None
     assert lobe_pieces(tr.part(material, photo, weights, 5000, albedo=np.ones((500, 3)),
                                group=rng.integers(0, 2, 500), scales=np.ones((2, 3))), tree) is None
+
+
+@pytest.mark.parametrize("n", [1, 7, 256, 300, 600])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_gram_matrices_are_the_products_of_the_rows(n, dtype):
+    """`_gram` (syrk's upper triangle mirrored block by block, `_symmetric`) is A'A, symmetric to the
+    bit, over block edges (SYMMETRIC_BLOCK = 256) and in both precisions; a lower triangle that is
+    not 0 is ignored."""
+    from pipelines.light.rows import _gram, _symmetric
+
+    rng = np.random.default_rng(n)
+    A = rng.random((n + 40, n)).astype(dtype)
+    G = _gram(A)
+    assert G.dtype == np.float64 and np.array_equal(G, G.T)
+    ref = A.astype(np.float64).T @ A.astype(np.float64)
+    assert np.allclose(G, ref, rtol=1e-5 if dtype == np.float32 else 1e-12)
+    upper = np.triu(rng.random((n, n)))
+    junk = upper + np.tril(rng.random((n, n)) + 1.0, -1)
+    want = upper + np.triu(upper, 1).T
+    assert np.array_equal(_symmetric(upper), want) and np.array_equal(_symmetric(junk), want)

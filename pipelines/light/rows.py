@@ -190,13 +190,20 @@ def _upper_gram(A: np.ndarray, C: np.ndarray | None = None) -> np.ndarray:
     return syrk(1.0, np.ascontiguousarray(A).T, beta=1.0, c=C, trans=0, lower=0, overwrite_c=1)
 
 
+SYMMETRIC_BLOCK = 256  # `_symmetric` mirrors the upper triangle in square blocks of this size
+
+
 def _symmetric(C: np.ndarray) -> np.ndarray:
-    """The symmetric float64 matrix of an upper triangle whose strict lower one is 0: C + C' with
-    the diagonal halved (one pass, no triu copies)."""
+    """The symmetric float64 matrix of an upper triangle (C's strict lower triangle is ignored: 0
+    from `_upper_gram`): the upper triangle mirrored block by block, each block's transpose read
+    while it is in cache (`G += G.T` strides through the whole matrix: 4x slower at 1,400 leaves)."""
     G = C.astype(np.float64)
-    G += G.T
-    diagonal = np.einsum("ii->i", G)
-    diagonal *= 0.5
+    n, b = len(G), SYMMETRIC_BLOCK
+    for i in range(0, n, b):
+        for j in range(i + b, n, b):
+            G[j:j + b, i:i + b] = G[i:i + b, j:j + b].T
+        block = G[i:i + b, i:i + b]
+        block[...] = np.triu(block) + np.triu(block, 1).T
     return G
 
 
