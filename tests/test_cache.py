@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 
+import numpy as np
 import pytest
 
 from cli_helpers import (RES, assert_one_error_line, copy_sample, copy_scene, decision_line, h5_arrays, invoke, kill_when, manifest, ok, render_args, rotate_pose, run_proc, sha256, snapshot, wavelight_exe, VIS_STAGE, VIS_H5, vis_stage, vis_file)
@@ -371,6 +372,28 @@ def test_killed_visibility_run_resumes_to_identical_bits(tmp_path):
     assert 0 < rec["summary"]["rays_cast_this_run"] < ref_rec["summary"]["rays_cast_this_run"]
     assert not (killed / ".wavelight" / "partial").exists()
     assert not [p for p in (killed / ".wavelight").rglob("*") if p.name.endswith(".tmp.h5")]
+
+
+def test_a_damaged_resume_chunk_is_cast_again(tmp_path):
+    """A chunk of an interrupted exact run damaged on disk (cut short, or not the chunk's rows) is
+    cast again on the next run, not read: no traceback, and the same bits as an uninterrupted run."""
+    scene = copy_sample(tmp_path / "scene")
+    args = ["visibility", "--resolution", "8", "--visibility", "exact"]
+    stage, h5 = vis_stage(8, "-exact"), ".wavelight/visibility/photo-R8-exact.h5"
+    first = run_proc(scene, *args)
+    assert first.returncode == 0, first.stderr
+    reference = h5_arrays(scene / h5)
+    key = manifest(scene)["stages"][stage]["key"]
+    partial = scene / ".wavelight" / "partial" / f"photo-R8-exact-{key[:16]}"
+    partial.mkdir(parents=True)
+    (partial / "chunk_00000.npy").write_bytes(b"\x93NUMPY" + b"\0" * 990)  # cut short
+    np.save(partial / "chunk_00001.npy", np.zeros((3, 24), np.uint8))  # not the chunk's rows
+    again = run_proc(scene, *args, "--force")
+    assert again.returncode == 0, again.stderr
+    assert "Traceback" not in again.stderr
+    assert f"{stage}: 2 damaged chunk(s) of an interrupted run are cast again" in again.stderr, again.stderr
+    assert h5_arrays(scene / h5) == reference
+    assert not (scene / ".wavelight" / "partial").exists()
 
 
 # -- concurrent runs ----------------------------------------------------------------------------

@@ -154,6 +154,12 @@ def _exact(cache, d, backend, samples, cube, opts, console, name):
     partial.mkdir(parents=True, exist_ok=True)
     n = len(samples)
     n_chunks = (n + CHUNK_PIXELS - 1) // CHUNK_PIXELS
+    damaged = [i for i in range(n_chunks) if not _chunk_ok(partial / f"chunk_{i:05d}.npy",
+                                                          min(n, (i + 1) * CHUNK_PIXELS) - i * CHUNK_PIXELS)]
+    for i in damaged:  # (a chunk damaged on disk is cast again, not read)
+        (partial / f"chunk_{i:05d}.npy").unlink(missing_ok=True)
+    if damaged:
+        console.say(f"{name}: {len(damaged)} damaged chunk(s) of an interrupted run are cast again")
     done = sum((partial / f"chunk_{i:05d}.npy").is_file() for i in range(n_chunks))
     if done:
         console.say(f"{name}: resuming, {done}/{n_chunks} chunks already done")
@@ -178,6 +184,18 @@ def _exact(cache, d, backend, samples, cube, opts, console, name):
             yield np.load(partial / f"chunk_{i:05d}.npy", allow_pickle=False)
 
     return chunks(), CHUNK_PIXELS, {"method": "exact", "rays_cast_this_run": rays}
+
+
+def _chunk_ok(path, rows: int) -> bool:
+    """Whether a resume chunk is absent (to be cast) or whole: `rows` rows of a 2-D array whose data
+    the file holds in full (a chunk cut short or overwritten on disk is not)."""
+    if not path.is_file():
+        return True
+    try:
+        a = np.load(path, mmap_mode="r", allow_pickle=False)
+        return a.ndim == 2 and a.shape[0] == rows and a.dtype == np.uint8
+    except (OSError, ValueError, EOFError):
+        return False
 
 
 def _prune(cache: SceneCache, view: View) -> None:
