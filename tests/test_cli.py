@@ -349,6 +349,11 @@ BAD_OPTIONS = [
     ("insert-radius", ["insert", "--at", "0", "0", "1", "--radius", "-1"], "--radius"),
     ("export-face-size", ["export", "--face-size", "12"], "--face-size"),
     ("group-lock-wait", ["--lock-wait", "-1", "status"], "--lock-wait"),
+    # (2^1100 overflowed into a traceback; NaN and inf wrote black PNGs with exit 0)
+    ("solve-exposure-huge", ["solve", "--exposure", "1100"], "--exposure"),
+    ("relight-exposure-nan", ["relight", "--exposure", "nan"], "--exposure"),
+    ("render-exposure-inf", ["render", "--light", "x.exr", "--exposure", "inf"], "--exposure"),
+    ("relight-light-exposure-huge", ["relight", "--light-exposure", "-2000"], "--light-exposure"),
 ]
 
 

@@ -207,7 +207,26 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
 cli.help = with_examples(cli.help, "")
 
 force_option = click.option("--force", is_flag=True, help="Rerun even if the cache is up to date.")
-exposure_option = click.option("--exposure", type=float, default=None,
+
+
+class Stops(click.ParamType):
+    """A finite exposure in stops within +-MOST (2^100 ~ 1e30: any photo's range; beyond it the scale
+    overflows or the PNG is all black or all white)."""
+
+    name = "stops"
+    MOST = 100.0
+
+    def convert(self, value, param, ctx):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number of stops", param, ctx)
+        if not (abs(v) <= self.MOST):  # (NaN fails too)
+            self.fail(f"{value!r}: give a finite number of stops from {-self.MOST:g} to {self.MOST:g}", param, ctx)
+        return v
+
+
+exposure_option = click.option("--exposure", type=Stops(), default=None,
                                help="PNG exposure in stops [default: the photo's, its 99.5th-percentile "
                                     "radiance white: a darker light looks darker]. Only redraws the PNG.")
 
@@ -611,7 +630,7 @@ def compare_cmd(obj, force, **kw):
                    "[default: the light solve recovered].")
 @click.option("--rotate", type=float, default=0.0, show_default=True,
               help="Turn the light about +Z by this many degrees (azimuth phi -> phi + DEG).")
-@click.option("--light-exposure", type=float, default=0.0, show_default=True,
+@click.option("--light-exposure", type=Stops(), default=0.0, show_default=True,
               help="Scale the light by 2^STOPS (the PNG keeps the photo's exposure: -1 looks one stop "
                    "darker).")
 @click.option("--view", "view_pose", type=click.Path(dir_okay=False, path_type=Path), default=None,
