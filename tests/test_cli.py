@@ -258,6 +258,10 @@ BAD_INPUT = [
     ("material-negative-kd", _write("mat.json", '{"model": "lambert", "kd": [-1, 0, 0]}'),
      _render_material("mat.json"), _file("mat.json")),
     ("material-json-array", _write("mat.json", "[0.8, 0.8, 0.8]"), _render_material("mat.json"), _file("mat.json")),
+    # (another JSON file, and a typo that left n at its default, were taken as lambert kd 1: bad-input sweep)
+    ("material-is-camera-json", lambda s: None, _render_material("camera.json"), _file("camera.json")),
+    ("material-key-typo", _write("mat.json", '{"model": "blinn-phong", "kd": 0.7, "ks": 0.1, "shinyness": 30}'),
+     _render_material("mat.json"), _text("'shininess'")),
     ("resolution-not-power-of-two", _nothing, lambda s: ["visibility", "--resolution", "12"], _text("--resolution")),
     ("resolution-not-power-of-two-render", _nothing, lambda s: render_args(s, res="12"), _text("--resolution")),
     ("resolution-negative", _nothing, lambda s: ["visibility", "--resolution", "-8"], _text("--resolution")),
@@ -854,3 +858,24 @@ def test_scene_toml_error_names_with_line_breaks_stay_one_line(workdir, doc):
     scene.mkdir(exist_ok=True)
     (scene / "scene.toml").write_text(doc)
     assert_one_error_line(invoke(scene, "status", quiet=True), "scene.toml", quiet=True)
+
+
+def test_a_material_file_is_read_from_what_wavelight_writes_and_nothing_else(tmp_path):
+    """--material takes reflectance.json, a truth's material.json and the Blender export's
+    material.json (its `wavelight_material`); a JSON file that names no material, or a key one typo
+    from a material's, is refused naming the file (they were read as lambert kd 1)."""
+    from pipelines.io import exports as ex
+    from pipelines.model.materials import Material
+    from pipelines.errors import InputError
+    from wavelight_cli.scene import material_from_options
+
+    m = Material(kd=(0.6, 0.5, 0.4), ks=(0.2, 0.2, 0.2), shininess=30.0, model="blinn-phong")
+    (tmp_path / "blender.json").write_text(json.dumps(ex.blender_material_description(m)))
+    assert material_from_options(tmp_path / "blender.json", None, None, None, None) == m
+    (tmp_path / "reflectance.json").write_text(json.dumps({"format": "wavelight-reflectance-1", "mode": "auto",
+                                                           **m.to_json(), "ks_over_kd": 0.4}))
+    assert material_from_options(tmp_path / "reflectance.json", None, None, None, None) == m
+    for doc, says in (({"fx": 100.0, "width": 64}, "names no material"), ({**m.to_json(), "shinyness": 9}, "shininess")):
+        (tmp_path / "bad.json").write_text(json.dumps(doc))
+        with pytest.raises(InputError, match=says):
+            material_from_options(tmp_path / "bad.json", None, None, None, None)

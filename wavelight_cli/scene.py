@@ -262,6 +262,31 @@ def load_view_photo(view: View, camera, linear: bool | None = None):
     return path, img
 
 
+# the keys a material file may name (ours, reflectance.json's, the scenes' truth, Mitsuba's plastics)
+MATERIAL_KEYS = ("model", "type", "kd", "ks", "n", "shininess", "alpha", "roughness", "distribution", "ior",
+                 "int_ior", "ext_ior", "diffuse_reflectance", "specular_reflectance", "nonlinear", "alpha_u",
+                 "alpha_v")
+# the other keys of the files a material comes from (reflectance.json's report, a truth's formula)
+MATERIAL_FILE_KEYS = ("format", "mode", "decision", "candidates", "uncertainty", "uncertainty_note",
+                      "kd_colour_observable", "chosen_round", "rounds", "seconds", "ks_over_kd", "scale_ambiguity",
+                      "parts", "parts_options", "reference_part", "formula")
+
+
+def _check_material_keys(data: dict, path) -> None:
+    """A material file names a material (one of MATERIAL_KEYS: another JSON file, e.g. camera.json,
+    names none) and no key one typo away from one (`shinyness` would leave n at its default)."""
+    import difflib
+
+    if not any(k in data for k in MATERIAL_KEYS):
+        raise InputError("names no material (none of model, kd, ks, n, alpha, ...)", path,
+                         'give a material file, e.g. {"model": "lambert", "kd": [0.8, 0.8, 0.8]}')
+    for key in data:
+        known = key in MATERIAL_KEYS or key in MATERIAL_FILE_KEYS
+        near = [] if known else difflib.get_close_matches(str(key), MATERIAL_KEYS, 1, 0.8)
+        if near:
+            raise InputError(f"unknown key {key!r}", path, f"did you mean {near[0]!r}? (README: reflectance)")
+
+
 def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
                           given: set | None = None, alpha=None, ior=None, distribution=None):
     """The material of --material/--model/--kd/--ks/--shininess (and plastic's --alpha, --ior,
@@ -278,6 +303,9 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
         if not isinstance(data, dict):
             raise InputError("a material must be a JSON object", material_file,
                              'write e.g. {"model": "lambert", "kd": [0.8, 0.8, 0.8]}')
+        if isinstance(data.get("wavelight_material"), dict):  # the Blender export's material.json
+            data = dict(data["wavelight_material"])
+        _check_material_keys(data, material_file)
     if model is not None:
         data["model"] = model
         data.pop("type", None)
