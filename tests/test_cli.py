@@ -238,6 +238,8 @@ BAD_INPUT = [
     ("image-garbage", _write("image.exr", GARBAGE), CHECK, _file("image.exr")),
     ("image-truncated", _truncate_half("image.exr"), CHECK, _file("image.exr")),
     ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, _file("image.exr")),
+    # (an EXR of R and G was read as grey + alpha: green dropped without a word; bad-input sweep)
+    ("image-two-colour-channels", _exr("image.exr", (144, 192, 2)), CHECK, _file("image.exr")),
     ("image-nan", _exr("image.exr", (144, 192, 3), nan=True), CHECK, _file("image.exr")),
     ("image-nan-inside-mask", _nan_block("in"), CHECK, _file("image.exr")),
     ("image-jpeg-named-exr", _renamed_as_exr("jpg"), CHECK, _file("image.exr")),

@@ -158,6 +158,10 @@ def read_image(path: str | Path, linear: bool | None = None, mask: str | Path | 
         px = _pixels(buf, path, spec.format)
         max_code = np.iinfo(px.dtype).max if np.issubdtype(px.dtype, np.integer) else None
     nch = px.shape[2]
+    if nch in (2, 4) and spec.alpha_channel != nch - 1:  # (e.g. an EXR of R and G: not grey and alpha)
+        names = ", ".join(spec.channelnames) or f"{nch} channels"
+        raise InputError(f"image has {nch} channels ({names}), the last not an alpha channel: expected grey, "
+                         "grey + alpha, RGB or RGBA", path, "export it as an RGB image")
     if nch in (2, 4):  # grey+alpha or RGBA: drop alpha
         px = px[..., : nch - 1]
     elif nch not in (1, 3):
