@@ -265,3 +265,18 @@ def test_report_with_a_corrupt_export_json_names_it(reported, tmp_path):
     before = (scene / "out" / "report.md").read_bytes()
     assert_one_error_line(invoke(scene, "report"), "export.json", quiet=False)
     assert (scene / "out" / "report.md").read_bytes() == before
+
+
+@pytest.mark.parametrize("name", ["coefficients.h5", "light_latlong.exr"])
+def test_report_with_a_damaged_solve_output_names_it_and_draws_nothing(reported, tmp_path, name):
+    """A truncated coefficients.h5 named the scene folder and blamed the disk, and the figures drawn
+    before it were left without their pages (bad-input sweep): now one line naming the file and the
+    fix, and the report as it was."""
+    scene = shutil.copytree(reported, tmp_path / "s")
+    path = scene / "out" / name
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+    before = {p: p.read_bytes() for p in (scene / "out").rglob("*") if p.is_file() and "report" in p.as_posix()}
+    line = assert_one_error_line(invoke(scene, "report"), name, quiet=False)
+    assert "solve --force" in line
+    after = {p: p.read_bytes() for p in (scene / "out").rglob("*") if p.is_file() and "report" in p.as_posix()}
+    assert after == before

@@ -500,6 +500,28 @@ def _exports(doc: Doc, out: Path):
                if (mat.get("light_scale") or 1) > 1 else ""))
 
 
+def _check_solve_files(out: Path) -> None:
+    """The solve's light and images the figures read, read once before any figure is drawn: a damaged
+    one is refused naming it (a truncated coefficients.h5 named the scene folder and the disk, and
+    left the figures drawn before it without their pages)."""
+    from pipelines.io import images
+    from pipelines.io.light_file import read_solution_light
+
+    fix = "rerun wavelight solve --force"
+    path = out / "coefficients.h5"
+    if path.is_file():
+        try:
+            read_solution_light(path)
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"cannot read the solved light ({(str(exc).splitlines() or [''])[0]})", path, fix) from None
+    for name in ("light_latlong.exr", "relit.exr", "residual.png", "observability.png"):
+        if (out / name).is_file():
+            try:
+                images.read_image(out / name, linear=True)
+            except InputError as exc:
+                raise InputError(exc.problem, out / name, fix) from None
+
+
 @dataclass
 class Made:
     path: Path
@@ -523,6 +545,7 @@ def build(scene: SceneFiles) -> tuple[Doc, dict]:
     pose = _json(scene.pose) if scene.pose.is_file() else None
     _outputs(out)  # a corrupt relight/insert JSON is an error before anything is drawn
     _json(out / "export" / "export.json")
+    _check_solve_files(out)  # (and a damaged light or image: nothing is drawn of a report that cannot be made)
     figdir = out / "report"
     opts = solve.get("options", {})
     try:
