@@ -881,3 +881,22 @@ def test_a_material_file_is_read_from_what_wavelight_writes_and_nothing_else(tmp
         (tmp_path / "bad.json").write_text(json.dumps(doc))
         with pytest.raises(InputError, match=says):
             material_from_options(tmp_path / "bad.json", None, None, None, None)
+
+
+@pytest.mark.parametrize("doc, args, option", [
+    ("[visibility]\nresolution = 7\n", ["visibility"], "--resolution"),
+    ("[solve]\nlevels = 0\n", ["solve"], "--levels"),
+])
+def test_an_option_value_scene_toml_set_badly_is_an_error_in_scene_toml(scene, doc, args, option):
+    """A value that the options' own checks refuse names scene.toml when scene.toml set it (it said
+    `--resolution must be ...` of an option never given; bad-input sweep): exit 1, one line; the
+    same value on the command line stays a usage error (exit 2)."""
+    before = snapshot(scene)
+    (scene / "scene.toml").write_text(doc)
+    line = assert_one_error_line(invoke(scene, *args), "scene.toml", quiet=False)
+    assert option in line
+    (scene / "scene.toml").unlink()
+    value = doc.split("= ")[1].strip()
+    result = invoke(scene, *args, option, value)
+    assert result.exit_code == 2 and "scene.toml" not in result.stderr, result.stderr
+    assert snapshot(scene) == before

@@ -109,6 +109,27 @@ class WavelightGroup(click.Group):
             sys.exit(130)
 
 
+class WavelightCommand(click.Command):
+    """A subcommand: a bad option value that scene.toml set (not the command line) is an error in
+    scene.toml, named as such (it said `--resolution must be ...` of an option the user never gave)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except OptionError as exc:
+            from click.core import ParameterSource
+
+            line = exc.line()
+            from_toml = [p for p in self.params if isinstance(p, click.Option)
+                         and ctx.get_parameter_source(p.name) == ParameterSource.DEFAULT_MAP
+                         and any(o in line for o in p.opts if o.startswith("--"))]
+            scene = (ctx.obj or {}).get("scene")
+            if not from_toml or scene is None:
+                raise
+            keys = ", ".join(p.opts[0].lstrip("-") for p in from_toml)
+            raise InputError(f"{exc.problem} (set here: {keys})", Path(scene) / "scene.toml", exc.fix) from None
+
+
 def _key_names(param: click.Parameter) -> list[str]:
     """scene.toml keys for an option: its long option names without dashes (`ray-backend`), and
     its Python name (`backend`), with - and _ alike."""
@@ -297,7 +318,7 @@ def _command(name, **kwargs):
     """A subcommand: its summary in the group's list (help_text.SUMMARY), its docstring and
     examples (help_text.EXAMPLES) as its help."""
     def deco(f):
-        cmd = cli.command(name, short_help=SUMMARY[name], **kwargs)(f)
+        cmd = cli.command(name, cls=WavelightCommand, short_help=SUMMARY[name], **kwargs)(f)
         cmd.help = with_examples(cmd.help, name)
         cmd.uses_visibility = getattr(f, "uses_visibility", False)
         return cmd
