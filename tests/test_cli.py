@@ -87,11 +87,11 @@ def _truncate_half(name):
     return mutate
 
 
-def _exr(name, shape, nan=False):
+def _exr(name, shape, nan=False, value=0.5):
     def mutate(scene):
         from pipelines.io.images import write_exr
 
-        img = np.full(shape, 0.5, dtype=np.float32)
+        img = np.full(shape, value, dtype=np.float32)
         if nan:
             img[5, 7, 1] = np.nan
         write_exr(scene / name, img)
@@ -240,6 +240,8 @@ BAD_INPUT = [
     ("image-wrong-size", _exr("image.exr", (10, 10, 3)), CHECK, _file("image.exr")),
     # (an EXR of R and G was read as grey + alpha: green dropped without a word; bad-input sweep)
     ("image-two-colour-channels", _exr("image.exr", (144, 192, 2)), CHECK, _file("image.exr")),
+    # (check said ok of a photo solve refuses: black over the used pixels)
+    ("image-black-check", _exr("image.exr", (144, 192, 3), value=0.0), CHECK, _file("image.exr")),
     ("image-nan", _exr("image.exr", (144, 192, 3), nan=True), CHECK, _file("image.exr")),
     ("image-nan-inside-mask", _nan_block("in"), CHECK, _file("image.exr")),
     ("image-jpeg-named-exr", _renamed_as_exr("jpg"), CHECK, _file("image.exr")),

@@ -173,10 +173,14 @@ def textured(tmp_path):
 
 
 def test_missing_texture_is_one_line(textured):
+    """...before any stage runs: no visibility cast and cached first (it was; bad-input sweep), and
+    `check` refuses it as solve does (it said ok)."""
     (textured / "spot_texture.png").rename(textured / "elsewhere.png")
     line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
     assert "mesh.mtl" in line and "spot_texture.png" in line and "does not exist" in line and "--no-texture" in line
     _untouched(textured)
+    assert not (textured / ".wavelight" / "visibility").exists()
+    assert _error_line(invoke(textured, "check")) == line
     # --no-texture solves it (the part keeps its .mtl Kd)
     assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert", "--no-texture").exit_code == 0
 

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
 from pipelines.controllers.visibility import VisibilityOptions
 from pipelines.errors import InputError
 
@@ -29,6 +33,12 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
     mesh = load_mesh(scene.mesh)
     lines.append(f"{scene.mesh.name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces"
                  + (f" ({'; '.join(mesh.notes)})" if mesh.notes else ""))
+    from pipelines.model.parts import scene_parts
+
+    sp = scene_parts(mesh, scene.mesh, scene.root)  # (a missing .mtl or texture, wrong UVs: as solve refuses them)
+    if sp is not None:
+        lines.append("parts: " + ", ".join(
+            p.name + (f" (texture {Path(p.texture.path).name})" if p.texture is not None else "") for p in sp.parts))
     if scene.mask is not None:
         mask = images.read_mask(scene.mask)
         if mask.shape != (camera.height, camera.width):
@@ -40,8 +50,13 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
     if scene.pose.exists():
         read_pose(scene.pose)
         opts.check()
-        *_, diag = load_samples(scene, opts, photo_view(scene))
+        _, _, _, samples, diag = load_samples(scene, opts, photo_view(scene))
         lines.append(f"pose.json: {diag['used']} used pixels of {diag['hit']} that see the mesh")
+        if scene.image is not None and len(samples):
+            rows, cols = samples.pixel[:, 0], samples.pixel[:, 1]
+            if not np.any(img.pixels[rows, cols] > 0):  # (as solve refuses it)
+                raise InputError(f"the photo is black over all {len(samples)} used pixels: there is no light to "
+                                 "recover", path, "check the exposure, the lens cap, the mask and that this is the right photo")
     else:
         lines.append("pose.json: none (run wavelight register)")
     return lines

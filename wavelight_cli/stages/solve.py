@@ -109,6 +109,9 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         cameras.append(read_camera(require(v.camera, "write the view's camera.json (or the scene's shared one)")))
         photos.append(load_view_photo(v, cameras[-1], True if opts.linear_input else None))
     part_inputs = parts_files(scene.mesh, scene.root) if parts.parts else {}
+    # the parts read before any stage runs: a missing .mtl or texture is refused before visibility
+    # is cast and cached (the mesh is read once: `scene_mesh`)
+    scene_parts = _scene_parts(scene, parts) if parts.parts else None
     cache = SceneCache(scene.root)
     out = scene.out
     with cache.lock(lock_wait, console.say):
@@ -124,7 +127,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             stacked = mv.stacked_photo([ph for _, ph in photos], layout)
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
             mesh = scene_mesh(scene.mesh)  # (read once when the visibility stage ran in this process)
-            albedo = _pixel_albedo(scene, mesh, data, views, cameras, layout, parts, console) if parts.parts else None
+            albedo = (_pixel_albedo(scene_parts, mesh, data, views, cameras, layout, console, parts.shared_ks)
+                      if parts.parts else None)
             gains, exposure_info = np.ones(len(views)), None
             if len(views) > 1 and opts.view_exposure == "fit":  # (photos of another exposure: their gains first)
                 gains, exposure_info = mv.fit_exposures(data, *ctl.prepare_photo(data, stacked, opts, photo_path)[:2],
@@ -276,14 +280,20 @@ def _view_lines(report: dict) -> list[str]:
     lines.append(f"solve: all views: {u['unobservable']} unobservable and {u['weakly_observed']} weakly observed "
                  f"(< {obs['weak_threshold']:g}) of {obs['texels']} texels")
     return lines
-def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, console: Console):
-    """The used pixels' known relative albedo from the mesh's parts and textures (None: one uniform
-    material), each pixel's texture lookup filtered to its footprint in its own view's camera
-    (`model.parts`)."""
+def _scene_parts(scene: SceneFiles, parts):
+    """The mesh's parts and textures (`model.parts.scene_parts`; None: one uniform material)."""
+    from pipelines.model import parts as pm
+
+    return pm.scene_parts(scene_mesh(scene.mesh), scene.mesh, scene.root, parts.texture, parts.texture_colour)
+
+
+def _pixel_albedo(sp, mesh, data, views, cameras, layout, console: Console, shared_ks: bool = False):
+    """The used pixels' known relative albedo from the mesh's parts and textures `sp` (`_scene_parts`;
+    None: one uniform material), each pixel's texture lookup filtered to its footprint in its own
+    view's camera (`model.parts`)."""
     from pipelines.io.scene_files import read_pose
     from pipelines.model import parts as pm
 
-    sp = pm.scene_parts(mesh, scene.mesh, scene.root, parts.texture, parts.texture_colour)
     if sp is None:
         return None
     s = data.samples
@@ -300,7 +310,7 @@ def _pixel_albedo(scene: SceneFiles, mesh, data, views, cameras, layout, parts, 
         f"{'texture ' + Path(p.texture.path).name if p.texture is not None else 'vertex colours' if p.vertex_colours else 'kd'}"
         f"{', reference' if k == sp.reference else ''})" for k, p in enumerate(sp.parts)))
     return pm.PixelAlbedo(base, part, np.ones((len(sp.parts), 3)), sp, *pm.declared_glossy(sp),
-                          own_ks=not parts.shared_ks)
+                          own_ks=not shared_ks)
 
 
 def _result_line(sol, result, report, cache, light_path) -> str:
