@@ -254,6 +254,11 @@ BAD_INPUT = [
     ("mask-wrong-size-check", _png("mask.png", (144, 100, 3), 1), CHECK, _file("mask.png")),
     ("mask-garbage", _write("mask.png", GARBAGE), VIS, _file("mask.png")),
     ("light-missing", _nothing, _render_light("no_such_light.exr"), _file("no_such_light.exr")),
+    # (a negated map rendered black with exit 0; a NaN in a light was told to use a mask.png: bad-input sweep)
+    ("light-negative", _exr("neg_light.exr", (8, 16, 3), value=-1.0), _render_light("neg_light.exr"),
+     _text("neg_light.exr: the light has no positive radiance")),
+    ("light-nan", _exr("nan_light.exr", (8, 16, 3), nan=True), _render_light("nan_light.exr"),
+     _text("nan_light.exr: 1 pixels are NaN or infinite. Fix the light")),
     ("light-not-2to1", _exr("square_light.exr", (10, 10, 3)), _render_light("square_light.exr"),
      _file("square_light.exr")),
     ("light-garbage", _write("garbage_light.exr", GARBAGE), _render_light("garbage_light.exr"),
@@ -355,6 +360,7 @@ BAD_OPTIONS = [
     ("register-threshold", ["register", "--outlier-threshold", "-2"], "--outlier-threshold"),
     ("relight-view-camera-alone", ["relight", "--view-camera", "camera.json"], "--view"),
     ("insert-radius", ["insert", "--at", "0", "0", "1", "--radius", "-1"], "--radius"),
+    ("insert-object-kd", ["insert", "--at", "0", "0", "1", "--object-kd", "-1", "0", "0"], "--object-kd"),
     ("export-face-size", ["export", "--face-size", "12"], "--face-size"),
     ("group-lock-wait", ["--lock-wait", "-1", "status"], "--lock-wait"),
     # (2^1100 overflowed into a traceback; NaN and inf wrote black PNGs with exit 0)

@@ -243,11 +243,19 @@ def read_mask(path: str | Path) -> np.ndarray:
 def read_latlong(path: str | Path) -> np.ndarray:
     """Read a lat-long light image (H, 2H, 3) float64 linear radiance (DESIGN §2)."""
     path = Path(path)
-    img = read_image(path, linear=True)
+    try:
+        img = read_image(path, linear=True)
+    except InputError as exc:  # (a photo's fixes name masks and PNG/JPEG: a light's are its own)
+        fix = ("fix the light: every pixel of a light is used (no mask)" if "NaN or infinite" in exc.problem else
+               "give a lat-long light as EXR or HDR (linear radiance)")
+        raise InputError(exc.problem, exc.path or path, fix) from None
     h, w = img.pixels.shape[:2]
     if w != 2 * h:
         raise InputError(f"lat-long light must be twice as wide as high, got {w}x{h}", path,
                          "resample it to a 2:1 equirectangular image")
+    if not np.any(img.pixels > 0):  # (negative values are read as 0: a negated map is black too)
+        raise InputError("the light has no positive radiance (black, or negative values only)", path,
+                         "give a light whose radiance is > 0 somewhere")
     return img.pixels.astype(np.float64)
 
 

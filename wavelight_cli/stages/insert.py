@@ -43,6 +43,9 @@ class InsertOptions:
             raise OptionError("--at must be three finite numbers (world x y z)", None, "fix --at")
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise OptionError(f"--scale must be positive, got {self.scale}", None, "fix --scale")
+        if self.object_kd is not None and not all(np.isfinite(v) and v >= 0 for v in self.object_kd):
+            raise OptionError(f"--object-kd must be 3 finite values >= 0, got {' '.join(map(str, self.object_kd))}",
+                              None, "fix --object-kd")
         if self.radius is not None and not (np.isfinite(self.radius) and self.radius > 0):
             raise OptionError(f"--radius must be positive, got {self.radius}", None, "fix --radius")
         if not self.name or not all(c.isalnum() or c in "-_" for c in self.name):
@@ -72,8 +75,11 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
                                                                                 "or 'sphere'")
     if opts.object_material is not None:
         require(opts.object_material, "check the path")
-    obj_material = material_from_options(opts.object_material, None, opts.object_kd or (
-        None if opts.object_material else (0.8, 0.8, 0.8)), None, None)
+    try:
+        obj_material = material_from_options(opts.object_material, None, opts.object_kd or (
+            None if opts.object_material else (0.8, 0.8, 0.8)), None, None)
+    except OptionError as exc:  # (its value is --object-kd's, not the scene material's --kd)
+        raise OptionError(exc.problem, None, "fix --object-kd (3 values >= 0)") from None
     if opts.light is not None:
         resolution = opts.resolution or DEFAULT_RESOLUTION
     else:
