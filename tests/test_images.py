@@ -318,3 +318,32 @@ def test_write_png_already_display(tmp_path):
     img = np.array([[[0.0, 0.5, 1.0]]])
     _, px = read_raw(write_png(tmp_path / "d.png", img, already_display=True))
     np.testing.assert_array_equal(px[0, 0], [0, 128, 255])
+
+
+@pytest.mark.parametrize("layout", ["grey", "rgba-opaque", "alpha-only", "grey-alpha"])
+def test_a_mask_with_an_alpha_channel_is_read_by_its_colour_and_its_alpha(tmp_path, layout):
+    """An RGBA mask.png (as image editors export them) was read as all used: its opaque alpha counted
+    as a channel above half (bad-input sweep). Now the colour says white = used and the alpha, when
+    there is one, transparent = not used."""
+    import cv2
+
+    from pipelines.io.images import read_mask
+
+    rng = np.random.default_rng(3)
+    want = rng.random((12, 20)) < 0.5
+    m = np.where(want, 255, 0).astype(np.uint8)
+    full = np.full_like(m, 255)
+    img = {"grey": m, "rgba-opaque": np.dstack([m, m, m, full]), "alpha-only": np.dstack([full, full, full, m]),
+           "grey-alpha": np.dstack([m, full])}[layout]
+    if layout == "grey-alpha":  # (cv2 writes no 2-channel PNG: OpenImageIO does)
+        import OpenImageIO as oiio
+
+        spec = oiio.ImageSpec(20, 12, 2, oiio.UINT8)
+        spec.channelnames, spec.alpha_channel = ("Y", "A"), 1
+        out = oiio.ImageOutput.create(str(tmp_path / "mask.png"))
+        out.open(str(tmp_path / "mask.png"), spec)
+        out.write_image(img)
+        out.close()
+    else:
+        cv2.imwrite(str(tmp_path / "mask.png"), img)
+    assert np.array_equal(read_mask(tmp_path / "mask.png"), want)

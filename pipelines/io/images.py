@@ -231,13 +231,19 @@ def read_grey8(path: str | Path) -> np.ndarray:
 
 
 def read_mask(path: str | Path) -> np.ndarray:
-    """Read a mask image: (H, W) bool, True where any channel is above half its range."""
+    """Read a mask image: (H, W) bool, True where any colour channel is above half its range and,
+    when it has an alpha channel, the alpha too (transparent = not used). (An opaque alpha counted as
+    a channel made every pixel of an RGBA mask used.)"""
     import OpenImageIO as oiio
 
     path = Path(path)
     buf = _open(path)
-    px = _pixels(buf, path, oiio.FLOAT)
-    return np.asarray(px).max(axis=2) > 0.5
+    px = np.asarray(_pixels(buf, path, oiio.FLOAT))
+    alpha = buf.spec().alpha_channel
+    if 0 <= alpha < px.shape[2] and px.shape[2] > 1:
+        colour = np.delete(px, alpha, axis=2)
+        return (colour.max(axis=2) > 0.5) & (px[..., alpha] > 0.5)
+    return px.max(axis=2) > 0.5
 
 
 def read_latlong(path: str | Path) -> np.ndarray:
