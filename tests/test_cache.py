@@ -215,6 +215,10 @@ def test_garbage_manifest_means_rebuild_not_crash(scene, baseline_arrays, conten
     status = invoke(scene, "status", "--json")
     ok(status)
     assert all(r["state"] != "fresh" for r in json.loads(status.stdout))
+    if reason is not None:  # (the text status said only "no stage has run": bad-input sweep)
+        text = invoke(scene, "status")
+        ok(text)
+        assert "manifest.json: damaged; the next stage rebuilds it" in text.stdout, text.stdout
     err = _vis(scene)
     line = decision_line(err, VIS_STAGE)
     assert line.startswith(f"{VIS_STAGE}: running (")

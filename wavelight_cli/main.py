@@ -801,10 +801,14 @@ def status_cmd(obj, as_json):
     from .stages import versions
 
     scene = scene_folder(obj["scene"])
-    rows = SceneCache(scene.root).status(versions())
+    cache = SceneCache(scene.root)
+    rows = cache.status(versions())
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return
+    if cache.manifest().get("damaged"):  # (as the stages say when they run)
+        click.echo(f"{cache.dir / 'manifest.json'}: damaged; the next stage rebuilds it (stages whose outputs "
+                   "are on disk are listed from them)")
     if not rows:
         click.echo(f"no stage has run in {scene.root}")
         return
