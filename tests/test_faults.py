@@ -344,3 +344,18 @@ def test_stale_temp_files_are_swept_under_the_lock(lambert_solved, tmp_path):
     assert decision_line(err, "solve").startswith("solve: skipped, up to date")
     assert not any(p.exists() for p in planted)
     assert keep.read_text() == "mine"
+
+
+def test_an_os_error_on_a_temp_file_names_the_file_it_stands_for(tmp_path):
+    """A write that fails on its temp file (a read-only out/: mkstemp, or the manifest's rename)
+    named `out/.ro.exr.p05upp5s.tmp.exr` (bad-input sweep): the line names out/ro.exr."""
+    import errno
+
+    from pipelines.io.files import final_path
+    from wavelight_cli.main import os_error_line
+
+    temp = tmp_path / "out" / ".relit.exr.p05upp5s.tmp.exr"
+    assert is_temporary(temp.name) and final_path(temp) == tmp_path / "out" / "relit.exr"
+    assert final_path(tmp_path / "relit.exr") == tmp_path / "relit.exr"
+    line = os_error_line(PermissionError(errno.EACCES, "Permission denied", str(temp)), tmp_path)
+    assert line.startswith(f"{tmp_path / 'out' / 'relit.exr'}: permission denied"), line

@@ -53,6 +53,10 @@ def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
     if code is None and not isinstance(exc, OSError):
         return None
     where = getattr(exc, "filename", None) or scene or "."
+    if isinstance(where, (str, Path)):  # (a temp file of an atomic write: the file the user knows)
+        from pipelines.io.files import final_path
+
+        where = final_path(where)
     if code is not None:
         problem = getattr(exc, "strerror", None) or os.strerror(code)
         problem = problem[:1].lower() + problem[1:]  # "no space left on device"; a library's detail as it is

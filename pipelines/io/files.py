@@ -20,12 +20,20 @@ import re
 import tempfile
 from pathlib import Path
 
-_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+_TEMP_NAME = re.compile(r"^\.(.+)\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 def is_temporary(name: str) -> bool:
     """True for the names `atomic_output` gives its temp files."""
     return bool(_TEMP_NAME.match(name))
+
+
+def final_path(path: str | Path) -> Path:
+    """The file a temp file of `atomic_output` stands for (`out/.relit.exr.x1y2z3w4.tmp.exr` ->
+    `out/relit.exr`: what an error names); any other path as it is."""
+    path = Path(path)
+    m = _TEMP_NAME.match(path.name)
+    return path.with_name(m.group(1)) if m else path
 
 
 class OutputSet:
