@@ -908,3 +908,12 @@ def test_an_option_value_scene_toml_set_badly_is_an_error_in_scene_toml(scene, d
     result = invoke(scene, *args, option, value)
     assert result.exit_code == 2 and "scene.toml" not in result.stderr, result.stderr
     assert snapshot(scene) == before
+
+
+def test_check_says_which_mesh_is_used_when_the_folder_has_two(scene):
+    """mesh.obj and mesh.ply side by side: the first of MESH_SUFFIXES is used, and `check` says so
+    (nothing did: bad-input sweep)."""
+    (scene / "mesh.ply").write_bytes(b"ply\n")  # (never read: mesh.obj comes first)
+    result = invoke(scene, "check")
+    assert result.exit_code == 0, result.output
+    assert "mesh.obj:" in result.stdout and "(mesh.ply also here, not used: mesh.obj comes first)" in result.stdout

@@ -31,8 +31,13 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
         uv, _ = read_correspondences(scene.correspondences)
         lines.append(f"correspondences.csv: {len(uv)} points")
     mesh = load_mesh(scene.mesh)
+    from pipelines.io.scene_files import MESH_SUFFIXES
+
+    unused = [f"mesh{e}" for e in MESH_SUFFIXES if (scene.root / f"mesh{e}").is_file() and f"mesh{e}" != scene.mesh.name]
+    notes = list(mesh.notes) + ([f"{', '.join(unused)} also here, not used: {scene.mesh.name} comes first"]
+                                if unused else [])
     lines.append(f"{scene.mesh.name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces"
-                 + (f" ({'; '.join(mesh.notes)})" if mesh.notes else ""))
+                 + (f" ({'; '.join(notes)})" if notes else ""))
     from pipelines.model.parts import scene_parts
 
     sp = scene_parts(mesh, scene.mesh, scene.root)  # (a missing .mtl or texture, wrong UVs: as solve refuses them)
