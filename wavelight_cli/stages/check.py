@@ -60,8 +60,9 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
         if scene.image is not None and len(samples):
             rows, cols = samples.pixel[:, 0], samples.pixel[:, 1]
             if not np.any(img.pixels[rows, cols] > 0):  # (as solve refuses it)
-                raise InputError(f"the photo is black over all {len(samples)} used pixels: there is no light to "
-                                 "recover", path, "check the exposure, the lens cap, the mask and that this is the right photo")
+                raise InputError(f"the photo is black (nothing above 0: negative values read as 0) over all "
+                                 f"{len(samples)} used pixels: there is no light to recover", path,
+                                 "check the exposure, the lens cap, the mask and that this is the right photo")
     else:
         lines.append("pose.json: none (run wavelight register)")
     return lines
