@@ -563,7 +563,8 @@ def prepare_photo(vis, photo, options: SolveOptions, photo_path=None, held_out: 
                          "use a darker exposure or an HDR (EXR) photo")
     if not np.any(values[~saturated] > 0):
         raise InputError(f"the photo is black (nothing above 0: negative values read as 0) over all {len(values)} "
-                         "used pixels: there is no light to recover", photo_path, "check the exposure, the lens cap, the mask and that this is the right photo")
+                         "used pixels: there is no light to recover", photo_path,
+                         "check the exposure, the lens cap, the mask and that this is the right photo")
     if held_out is not None:
         held = np.asarray(held_out, bool)
     else:

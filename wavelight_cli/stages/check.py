@@ -33,7 +33,8 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
     mesh = load_mesh(scene.mesh)
     from pipelines.io.scene_files import MESH_SUFFIXES
 
-    unused = [f"mesh{e}" for e in MESH_SUFFIXES if (scene.root / f"mesh{e}").is_file() and f"mesh{e}" != scene.mesh.name]
+    unused = [f"mesh{e}" for e in MESH_SUFFIXES
+              if (scene.root / f"mesh{e}").is_file() and f"mesh{e}" != scene.mesh.name]
     notes = list(mesh.notes) + ([f"{', '.join(unused)} also here, not used: {scene.mesh.name} comes first"]
                                 if unused else [])
     lines.append(f"{scene.mesh.name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces"
