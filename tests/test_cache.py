@@ -392,10 +392,11 @@ def test_a_damaged_resume_chunk_is_cast_again(tmp_path):
     partial.mkdir(parents=True)
     (partial / "chunk_00000.npy").write_bytes(b"\x93NUMPY" + b"\0" * 990)  # cut short
     np.save(partial / "chunk_00001.npy", np.zeros((3, 24), np.uint8))  # not the chunk's rows
+    np.save(partial / "chunk_00002.npy", np.zeros((CHUNK_PIXELS, 5), np.uint8))  # nor its width (review)
     again = run_proc(scene, *args, "--force")
     assert again.returncode == 0, again.stderr
     assert "Traceback" not in again.stderr
-    assert f"{stage}: 2 damaged chunk(s) of an interrupted run are cast again" in again.stderr, again.stderr
+    assert f"{stage}: 3 damaged chunk(s) of an interrupted run are cast again" in again.stderr, again.stderr
     assert h5_arrays(scene / h5) == reference
     assert not (scene / ".wavelight" / "partial").exists()
 

@@ -910,6 +910,18 @@ def test_an_option_value_scene_toml_set_badly_is_an_error_in_scene_toml(scene, d
     assert snapshot(scene) == before
 
 
+@pytest.mark.parametrize("doc, args", [
+    ("[relight]\nlight-exposure = 1\n", ["relight", "--rotate", "nan"]),  # (--light-exposure is named too)
+    ("[render]\nshininess = 30\n", ["render", "--light", "x.exr", "--kd", "-1", "0", "0"]),  # (named in the fix)
+])
+def test_a_command_line_mistake_is_not_blamed_on_scene_toml(scene, doc, args):
+    """An option error is scene.toml's only when scene.toml set every option its problem names (whole
+    names: --light is not --light-exposure; not the options its fix lists): review."""
+    (scene / "scene.toml").write_text(doc)
+    result = invoke(scene, *args)
+    assert result.exit_code == 2 and "scene.toml" not in result.stderr, result.stderr
+
+
 def test_check_says_which_mesh_is_used_when_the_folder_has_two(scene):
     """mesh.obj and mesh.ply side by side: the first of MESH_SUFFIXES is used, and `check` says so
     (nothing did: bad-input sweep)."""

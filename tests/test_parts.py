@@ -180,7 +180,11 @@ def test_missing_texture_is_one_line(textured):
     assert "mesh.mtl" in line and "spot_texture.png" in line and "does not exist" in line and "--no-texture" in line
     _untouched(textured)
     assert not (textured / ".wavelight" / "visibility").exists()
-    assert _error_line(invoke(textured, "check")) == line
+    checked = _error_line(invoke(textured, "check"))
+    assert "spot_texture.png" in checked and "does not exist" in checked and "[solve] no-texture = true" in checked
+    (textured / "scene.toml").write_text("[solve]\nno-texture = true\n")  # (check reads the parts as solve would)
+    assert invoke(textured, "check").exit_code == 0
+    (textured / "scene.toml").unlink()
     # --no-texture solves it (the part keeps its .mtl Kd)
     assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert", "--no-texture").exit_code == 0
 

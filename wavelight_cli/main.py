@@ -123,12 +123,15 @@ class WavelightCommand(click.Command):
         except OptionError as exc:
             from click.core import ParameterSource
 
-            line = exc.line()
-            from_toml = [p for p in self.params if isinstance(p, click.Option)
-                         and ctx.get_parameter_source(p.name) == ParameterSource.DEFAULT_MAP
-                         and any(o in line for o in p.opts if o.startswith("--"))]
+            import re
+
+            # the options the problem names (whole names: --light is not --light-exposure), and where
+            # each value came from; scene.toml is blamed only when it set every one of them
+            named = [p for p in self.params if isinstance(p, click.Option)
+                     and any(re.search(re.escape(o) + r"(?![\w-])", exc.problem) for o in p.opts if o.startswith("--"))]
+            from_toml = [p for p in named if ctx.get_parameter_source(p.name) == ParameterSource.DEFAULT_MAP]
             scene = (ctx.obj or {}).get("scene")
-            if not from_toml or scene is None:
+            if not named or len(from_toml) < len(named) or scene is None:
                 raise
             keys = ", ".join(p.opts[0].lstrip("-") for p in from_toml)
             raise InputError(f"{exc.problem} (set here: {keys})", Path(scene) / "scene.toml", exc.fix) from None
@@ -791,7 +794,10 @@ def check_cmd(obj, **kw):
     from .stages.check import check_scene
 
     scene = scene_folder(obj["scene"])
-    for line in check_scene(scene, _vis_opts(kw)):
+    # the parts as solve reads them: its scene.toml settings (--single-material, --no-texture) hold here too
+    solve_toml = (click.get_current_context().find_root().default_map or {}).get("solve") or {}
+    for line in check_scene(scene, _vis_opts(kw), parts=not solve_toml.get("single_material", False),
+                            texture=not solve_toml.get("no_texture", False)):
         click.echo(line)
     click.echo(f"{scene.root}: ok")
 
@@ -810,11 +816,13 @@ def status_cmd(obj, as_json):
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return
-    if cache.manifest().get("damaged"):  # (as the stages say when they run)
-        click.echo(f"{cache.dir / 'manifest.json'}: damaged; the next stage rebuilds it (stages whose outputs "
-                   "are on disk are listed from them)")
+    damaged = bool(cache.manifest().get("damaged"))
+    if damaged:  # (as the stages say when they run)
+        click.echo(f"{cache.dir / 'manifest.json'}: damaged; the next stage rebuilds it (calibrate and register "
+                   "are recovered from camera.json and pose.json; other stages run again)")
     if not rows:
-        click.echo(f"no stage has run in {scene.root}")
+        if not damaged:
+            click.echo(f"no stage has run in {scene.root}")
         return
     click.echo(f"{'stage':<12} {'state':<6} {'seconds':>8}  {'finished':<25} reason")
     for r in rows:

@@ -252,9 +252,13 @@ def read_latlong(path: str | Path) -> np.ndarray:
     try:
         img = read_image(path, linear=True)
     except InputError as exc:  # (a photo's fixes name masks and PNG/JPEG: a light's are its own)
-        fix = ("fix the light: every pixel of a light is used (no mask)" if "NaN or infinite" in exc.problem else
-               "give a lat-long light as EXR or HDR (linear radiance)")
-        raise InputError(exc.problem, exc.path or path, fix) from None
+        if "NaN or infinite" in exc.problem:
+            raise InputError(exc.problem, exc.path or path, "fix the light: every pixel of a light is used (no mask)"
+                             ) from None
+        if exc.problem.startswith("cannot read image"):  # (not an image at all: a truncated one keeps its fix)
+            raise InputError(exc.problem, exc.path or path, "give a lat-long light as EXR or HDR (linear radiance)"
+                             ) from None
+        raise
     h, w = img.pixels.shape[:2]
     if w != 2 * h:
         raise InputError(f"lat-long light must be twice as wide as high, got {w}x{h}", path,

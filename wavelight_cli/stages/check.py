@@ -13,8 +13,9 @@ from ..scene import SceneFiles, load_photo, photo_view, require
 from .visibility import load_samples
 
 
-def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
-    """One summary line per file of the scene folder; bad files raise InputError."""
+def check_scene(scene: SceneFiles, opts: VisibilityOptions, parts: bool = True, texture: bool = True) -> list[str]:
+    """One summary line per file of the scene folder; bad files raise InputError. `parts`, `texture`:
+    whether solve reads the mesh's parts and their textures (its --single-material, --no-texture)."""
     from pipelines.io import images
     from pipelines.io.scene_files import load_mesh, read_camera, read_correspondences, read_pose
 
@@ -41,7 +42,13 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions) -> list[str]:
                  + (f" ({'; '.join(notes)})" if notes else ""))
     from pipelines.model.parts import scene_parts
 
-    sp = scene_parts(mesh, scene.mesh, scene.root)  # (a missing .mtl or texture, wrong UVs: as solve refuses them)
+    try:  # (a missing .mtl or texture, wrong UVs: as solve refuses them)
+        sp = scene_parts(mesh, scene.mesh, scene.root, use_texture=texture) if parts else None
+    except InputError as exc:
+        if exc.fix is None or "--no-texture" not in exc.fix:
+            raise
+        raise InputError(exc.problem, exc.path, f"{exc.fix} (of solve; or [solve] no-texture = true in "
+                         "scene.toml)") from None
     if sp is not None:
         lines.append("parts: " + ", ".join(
             p.name + (f" (texture {Path(p.texture.path).name})" if p.texture is not None else "") for p in sp.parts))

@@ -517,7 +517,8 @@ def _check_solve_files(out: Path) -> None:
     for name in ("light_latlong.exr", "relit.exr", "residual.png", "observability.png"):
         if (out / name).is_file():
             try:
-                images.read_image(out / name, linear=True)
+                images.read_latlong(out / name) if name == "light_latlong.exr" else images.read_image(
+                    out / name, linear=True)
             except InputError as exc:
                 raise InputError(exc.problem, out / name, fix) from None
 

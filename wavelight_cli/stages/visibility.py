@@ -154,8 +154,9 @@ def _exact(cache, d, backend, samples, cube, opts, console, name):
     partial.mkdir(parents=True, exist_ok=True)
     n = len(samples)
     n_chunks = (n + CHUNK_PIXELS - 1) // CHUNK_PIXELS
+    width = (cube.n_texels + 7) // 8 if opts.supersample == 1 else cube.n_texels  # (bits, or fractions)
     damaged = [i for i in range(n_chunks) if not _chunk_ok(partial / f"chunk_{i:05d}.npy",
-                                                          min(n, (i + 1) * CHUNK_PIXELS) - i * CHUNK_PIXELS)]
+                                                          (min(n, (i + 1) * CHUNK_PIXELS) - i * CHUNK_PIXELS, width))]
     for i in damaged:  # (a chunk damaged on disk is cast again, not read)
         (partial / f"chunk_{i:05d}.npy").unlink(missing_ok=True)
     if damaged:
@@ -186,14 +187,15 @@ def _exact(cache, d, backend, samples, cube, opts, console, name):
     return chunks(), CHUNK_PIXELS, {"method": "exact", "rays_cast_this_run": rays}
 
 
-def _chunk_ok(path, rows: int) -> bool:
-    """Whether a resume chunk is absent (to be cast) or whole: `rows` rows of a 2-D array whose data
-    the file holds in full (a chunk cut short or overwritten on disk is not)."""
+def _chunk_ok(path, shape: tuple[int, int]) -> bool:
+    """Whether a resume chunk is absent (to be cast) or whole: a uint8 array of `shape` (its rows,
+    the stored row width) whose data the file holds in full (a chunk cut short or overwritten on disk
+    is not)."""
     if not path.is_file():
         return True
     try:
         a = np.load(path, mmap_mode="r", allow_pickle=False)
-        return a.ndim == 2 and a.shape[0] == rows and a.dtype == np.uint8
+        return a.shape == tuple(shape) and a.dtype == np.uint8
     except (OSError, ValueError, EOFError):
         return False
 
