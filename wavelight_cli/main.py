@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import sys
 import tomllib
 from dataclasses import replace
@@ -122,8 +123,6 @@ class WavelightCommand(click.Command):
             return super().invoke(ctx)
         except OptionError as exc:
             from click.core import ParameterSource
-
-            import re
 
             # the options the problem names (whole names: --light is not --light-exposure), and where
             # each value came from; scene.toml is blamed only when it set every one of them

@@ -17,7 +17,8 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions, parts: bool = True, 
     """One summary line per file of the scene folder; bad files raise InputError. `parts`, `texture`:
     whether solve reads the mesh's parts and their textures (its --single-material, --no-texture)."""
     from pipelines.io import images
-    from pipelines.io.scene_files import load_mesh, read_camera, read_correspondences, read_pose
+    from pipelines.io.scene_files import MESH_SUFFIXES, load_mesh, read_camera, read_correspondences, read_pose
+    from pipelines.model.parts import scene_parts
 
     lines = []
     camera = read_camera(require(scene.camera, "write camera.json or run wavelight calibrate"))
@@ -32,16 +33,12 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions, parts: bool = True, 
         uv, _ = read_correspondences(scene.correspondences)
         lines.append(f"correspondences.csv: {len(uv)} points")
     mesh = load_mesh(scene.mesh)
-    from pipelines.io.scene_files import MESH_SUFFIXES
-
     unused = [f"mesh{e}" for e in MESH_SUFFIXES
               if (scene.root / f"mesh{e}").is_file() and f"mesh{e}" != scene.mesh.name]
     notes = list(mesh.notes) + ([f"{', '.join(unused)} also here, not used: {scene.mesh.name} comes first"]
                                 if unused else [])
     lines.append(f"{scene.mesh.name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces"
                  + (f" ({'; '.join(notes)})" if notes else ""))
-    from pipelines.model.parts import scene_parts
-
     try:  # (a missing .mtl or texture, wrong UVs: as solve refuses them)
         sp = scene_parts(mesh, scene.mesh, scene.root, use_texture=texture) if parts else None
     except InputError as exc:
