@@ -922,10 +922,13 @@ def test_a_command_line_mistake_is_not_blamed_on_scene_toml(scene, doc, args):
     assert result.exit_code == 2 and "scene.toml" not in result.stderr, result.stderr
 
 
-def test_check_says_which_mesh_is_used_when_the_folder_has_two(scene):
-    """mesh.obj and mesh.ply side by side: the first of MESH_SUFFIXES is used, and `check` says so
-    (nothing did: bad-input sweep)."""
+def test_check_says_which_mesh_and_photo_are_used_when_the_folder_has_two(scene):
+    """mesh.obj and mesh.ply (image.exr and image.hdr) side by side: the first of MESH_SUFFIXES
+    (IMAGE_NAMES) is used, and `check` says so (nothing did: bad-input sweep)."""
     (scene / "mesh.ply").write_bytes(b"ply\n")  # (never read: mesh.obj comes first)
+    (scene / "image.hdr").write_bytes(b"#?RADIANCE\n")  # (never read: image.exr comes first)
     result = invoke(scene, "check")
     assert result.exit_code == 0, result.output
     assert "mesh.obj:" in result.stdout and "(mesh.ply also here, not used: mesh.obj comes first)" in result.stdout
+    assert "image.exr:" in result.stdout and "image.hdr" in result.stdout and "not used: image.exr comes first" \
+        in result.stdout

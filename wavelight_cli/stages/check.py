@@ -9,7 +9,7 @@ import numpy as np
 from pipelines.controllers.visibility import VisibilityOptions
 from pipelines.errors import InputError
 
-from ..scene import SceneFiles, load_photo, photo_view, require
+from ..scene import IMAGE_NAMES, SceneFiles, load_photo, photo_view, require
 from .visibility import load_samples
 
 
@@ -26,7 +26,9 @@ def check_scene(scene: SceneFiles, opts: VisibilityOptions, parts: bool = True, 
     if scene.image is not None:
         path, img = load_photo(scene, camera)
         depth = "float" if img.bit_depth == "float" else f"{img.bit_depth}-bit"
-        lines.append(f"{path.name}: {img.width}x{img.height}, {depth}, {int(img.saturated.sum())} saturated pixels")
+        others = [n for n in IMAGE_NAMES if n != path.name and (scene.root / n).exists()]
+        lines.append(f"{path.name}: {img.width}x{img.height}, {depth}, {int(img.saturated.sum())} saturated pixels"
+                     + (f" ({', '.join(others)} also here, not used: {path.name} comes first)" if others else ""))
     else:
         lines.append("photo: none (needed by solve)")
     if scene.correspondences.exists():
