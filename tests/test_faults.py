@@ -359,3 +359,20 @@ def test_an_os_error_on_a_temp_file_names_the_file_it_stands_for(tmp_path):
     assert final_path(tmp_path / "relit.exr") == tmp_path / "relit.exr"
     line = os_error_line(PermissionError(errno.EACCES, "Permission denied", str(temp)), tmp_path)
     assert line.startswith(f"{tmp_path / 'out' / 'relit.exr'}: permission denied"), line
+
+
+def test_a_file_or_dangling_link_where_a_folder_goes_is_named(tmp_path):
+    """out/export a file: the line named out/export/mitsuba ('not a directory'); a dangling link:
+    'file exists' (bad-input sweep). Now the thing in the way is named, with what it is."""
+    import errno
+
+    from wavelight_cli.main import os_error_line
+
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "export").write_text("")
+    line = os_error_line(NotADirectoryError(errno.ENOTDIR, "Not a directory", str(tmp_path / "out" / "export" / "m")))
+    assert line.startswith(f"{tmp_path / 'out' / 'export'}: is a file, where wavelight writes a folder"), line
+    (tmp_path / "out" / "export").unlink()
+    (tmp_path / "out" / "export").symlink_to(tmp_path / "nowhere")
+    line = os_error_line(FileExistsError(errno.EEXIST, "File exists", str(tmp_path / "out" / "export")))
+    assert line.startswith(f"{tmp_path / 'out' / 'export'}: is a dangling symbolic link"), line

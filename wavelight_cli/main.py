@@ -58,6 +58,15 @@ def os_error_line(exc: BaseException, scene: Path | None = None) -> str | None:
         from pipelines.io.files import final_path
 
         where = final_path(where)
+    in_the_way = None  # (a file, or a dangling link, where a folder must go: name it, not the path below it)
+    if code == errno.ENOTDIR and isinstance(where, Path):
+        in_the_way = next((p for p in where.parents if p.exists() and not p.is_dir()), None)
+    elif code == errno.EEXIST and isinstance(where, Path) and where.is_symlink() and not where.exists():
+        in_the_way = where
+    if in_the_way is not None:
+        kind = "a dangling symbolic link" if in_the_way.is_symlink() else "a file"
+        return InputError(f"is {kind}, where wavelight writes a folder", in_the_way,
+                          "move or delete it, then rerun").line()
     if code is not None:
         problem = getattr(exc, "strerror", None) or os.strerror(code)
         problem = problem[:1].lower() + problem[1:]  # "no space left on device"; a library's detail as it is
