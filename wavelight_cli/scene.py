@@ -284,7 +284,7 @@ def _check_material_keys(data: dict, path) -> None:
         known = key in MATERIAL_KEYS or key in MATERIAL_FILE_KEYS
         near = [] if known else difflib.get_close_matches(str(key), MATERIAL_KEYS, 1, 0.8)
         if near:
-            raise InputError(f"unknown key {key!r}", path, f"did you mean {near[0]!r}? (README: reflectance)")
+            raise InputError(f"unknown key {key!r}", path, f"did you mean {near[0]!r}? (README: the reflectance fit)")
 
 
 def material_from_options(material_file: Path | None, model: str | None, kd, ks, shininess,
