@@ -189,6 +189,17 @@ def test_missing_texture_is_one_line(textured):
     assert invoke(textured, "solve", "-R", "8", "--reflectance", "lambert", "--no-texture").exit_code == 0
 
 
+def test_missing_material_library_is_one_line_before_any_stage(textured):
+    """An OBJ whose mtllib names a missing .mtl: one line naming the mesh, before visibility is cast
+    and cached; `check` refuses it as solve does (bad-input sweep)."""
+    (textured / "mesh.mtl").rename(textured / "elsewhere.mtl")
+    line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))
+    assert "mesh.obj" in line and "mesh.mtl" in line and "does not exist" in line
+    _untouched(textured)
+    assert not (textured / ".wavelight" / "visibility").exists()
+    assert "mesh.mtl" in _error_line(invoke(textured, "check"))
+
+
 def test_unreadable_texture_is_one_line(textured):
     (textured / "spot_texture.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
     line = _error_line(invoke(textured, "solve", "-R", "8", "--reflectance", "lambert"))

@@ -57,8 +57,9 @@ def parts_files(mesh_path: Path, scene_dir: Path) -> dict:
     out = {"materials.toml": scene_dir / "materials.toml" if (scene_dir / "materials.toml").is_file() else None}
     mtl = _mtl_of(mesh_path)
     names = []
+    if mtl is not None:  # (named by the mesh: None when it is not there)
+        out["mtl"] = mtl if mtl.is_file() else None
     if mtl is not None and mtl.is_file():
-        out["mtl"] = mtl
         names += [(mtl.parent, m["map_Kd"]) for m in _parse_mtl(mtl).values() if m.get("map_Kd")]
     if out["materials.toml"] is not None:
         try:

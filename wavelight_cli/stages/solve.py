@@ -109,9 +109,11 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
         cameras.append(read_camera(require(v.camera, "write the view's camera.json (or the scene's shared one)")))
         photos.append(load_view_photo(v, cameras[-1], True if opts.linear_input else None))
     part_inputs = parts_files(scene.mesh, scene.root) if parts.parts else {}
-    # the parts read before any stage runs: a missing .mtl or texture is refused before visibility
-    # is cast and cached (the mesh is read once: `scene_mesh`)
-    scene_parts = _scene_parts(scene, parts) if parts.parts else None
+    # a missing .mtl or texture (None in part_inputs) is refused before visibility is cast and cached:
+    # the parts are then read now (`scene_parts` says what is missing), else only when the stage runs
+    missing = [k for k, v in part_inputs.items() if v is None and (k == "mtl" or (k.startswith("texture ")
+                                                                                  and parts.texture))]
+    early = [_scene_parts(scene, parts)] if missing else []
     cache = SceneCache(scene.root)
     out = scene.out
     with cache.lock(lock_wait, console.say):
@@ -127,8 +129,8 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
             stacked = mv.stacked_photo([ph for _, ph in photos], layout)
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)
             mesh = scene_mesh(scene.mesh)  # (read once when the visibility stage ran in this process)
-            albedo = (_pixel_albedo(scene_parts, mesh, data, views, cameras, layout, console, parts.shared_ks)
-                      if parts.parts else None)
+            albedo = (_pixel_albedo(early[0] if early else _scene_parts(scene, parts), mesh, data, views, cameras,
+                                    layout, console, parts.shared_ks) if parts.parts else None)
             gains, exposure_info = np.ones(len(views)), None
             if len(views) > 1 and opts.view_exposure == "fit":  # (photos of another exposure: their gains first)
                 gains, exposure_info = mv.fit_exposures(data, *ctl.prepare_photo(data, stacked, opts, photo_path)[:2],
