@@ -269,6 +269,9 @@ BAD_INPUT = [
     ("material-json-array", _write("mat.json", "[0.8, 0.8, 0.8]"), _render_material("mat.json"), _file("mat.json")),
     # (another JSON file, and a typo that left n at its default, were taken as lambert kd 1: bad-input sweep)
     ("material-is-camera-json", lambda s: None, _render_material("camera.json"), _file("camera.json")),
+    # (a missing one said 'cannot read material JSON ([Errno 2] ...). Fix the file')
+    ("material-missing", _nothing, _render_material("no_such_mat.json"),
+     _text("no_such_mat.json: file not found. Check the path of the material JSON")),
     ("material-key-typo", _write("mat.json", '{"model": "blinn-phong", "kd": 0.7, "ks": 0.1, "shinyness": 30}'),
      _render_material("mat.json"), _text("'shininess'")),
     ("resolution-not-power-of-two", _nothing, lambda s: ["visibility", "--resolution", "12"], _text("--resolution")),
