@@ -49,6 +49,11 @@ class NNLSResult:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items() if k != "x"}
 
 
+def _block(G: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """G[F][:, F] (rows, then columns: 2-4x faster than np.ix_'s one fancy index, the same values)."""
+    return G.take(F, axis=0).take(F, axis=1)
+
+
 def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float, rank_tol: float = 1e-11):
     """x_F = G_FF^-1 h_F on a linearly independent subset of F.
 
@@ -58,7 +63,7 @@ def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float, rank
     Lawson-Hanson's basic solutions are. Returns (x_F, dropped (bool over F), ridge, pivot ratio).
     A ridge is only used if LAPACK itself fails.
     """
-    GFF = G[np.ix_(F, F)]
+    GFF = _block(G, F)
     n = len(F)
     dropped = np.zeros(n, dtype=bool)
     dmax = float(np.max(np.diag(GFF), initial=0.0))
@@ -67,9 +72,11 @@ def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float, rank
     U, piv, rank, info = lapack.dpstrf(GFF, tol=rank_tol * dmax, lower=0)
     if info >= 0 and rank > 0:
         order = piv[:rank] - 1  # LAPACK pivots are 1-based
-        Ur = U[:rank, :rank]  # solve_triangular reads only the upper triangle
-        z = linalg.solve_triangular(Ur, h[F][order], trans="T", check_finite=False)
-        z = linalg.solve_triangular(Ur, z, check_finite=False)
+        Ur = U[:rank, :rank]  # ?trtrs reads only the upper triangle
+        # U'U z = h: two triangular solves (LAPACK's own: scipy's solve_triangular costs ~10 us a call
+        # in its checks, and the active set calls this thousands of times on small blocks)
+        z, _ = lapack.dtrtrs(Ur, h[F][order], lower=0, trans=1)
+        z, _ = lapack.dtrtrs(Ur, z, lower=0, trans=0)
         x = np.zeros(n)
         x[order] = z
         dropped[:] = True
@@ -94,7 +101,7 @@ def _objective(G: np.ndarray, h: np.ndarray, x: np.ndarray) -> float:
     if len(S) == 0:
         return 0.0
     xs = x[S]
-    return float(0.5 * xs @ (G[np.ix_(S, S)] @ xs) - h[S] @ xs)
+    return float(0.5 * xs @ (_block(G, S) @ xs) - h[S] @ xs)
 
 
 def _projected_gradient(G, h, x, tol=0.0, iterations=500, window=10):
@@ -162,7 +169,7 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iterations: int | None = None, r
         return NNLSResult(x, 0.0, 0, n, int((~live).sum()), 0.0, float("nan"), 0,
                           time.perf_counter() - t0, objective=0.0)
     idx = np.flatnonzero(live)
-    Gl = G if len(idx) == n else G[np.ix_(idx, idx)]  # no copy of a large G when every column is live
+    Gl = G if len(idx) == n else _block(G, idx)  # no copy of a large G when every column is live
     hl = h[idx]
     m = len(idx)
     tol = 1e-9 * hscale  # a gradient this small is rounding, not a reason to move
