@@ -327,3 +327,25 @@ def test_three_views_with_the_texture_modelled(tmp_path):
     assert probes3["glossy"] < 0.9 * probes1["glossy"]
     assert ratio3 < 0.6 * ratio1 and ratio3 < 0.03
     assert sun1 < 1.0 and sun3 < 1.0
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_texel_response_is_the_lambertian_gram_diagonal(mitsuba_scene, supersample):
+    """The observability map's per-view texel response is diag(T'T) of the view's pixels (T the
+    Lambertian kd = 1 transport, V cos omega), bit-packed rows and supersampled fractions alike,
+    for a slice of the rows as for all of them (the blocks run on both cores)."""
+    from pipelines.controllers.views import texel_response
+    from pipelines.geometry import visibility as vis
+    from pipelines.light.cubemap import CubeMap
+
+    scene = mitsuba_scene("spot_overcast")
+    samples = type(scene.samples)(**{k: v[::23] for k, v in vars(scene.samples).items()})
+    cube = CubeMap(8)
+    data = vis.compute_visibility(scene.backend, samples, cube, supersample=supersample)
+    T = data.dense() * np.maximum(samples.normal @ cube.directions.T, 0) * cube.solid_angles
+    assert 0 < T.max() and (T == 0).any() and 0 < data.dense().mean() < 1
+    rows = slice(100, 1500)
+    assert len(samples) > rows.stop
+    for sl in (None, rows):
+        expect = (T[sl or slice(None)].astype(np.float64) ** 2).sum(axis=0)
+        np.testing.assert_allclose(texel_response(data, sl, block=128), expect, rtol=1e-5, atol=1e-12 * expect.max())

@@ -110,21 +110,37 @@ def holdout(layout: Layout, fraction: float, main: str = "main") -> tuple[np.nda
                           "the chosen model is then fitted to every view"}
 
 
-def texel_response(vis, rows: slice | None = None, block: int = 2048) -> np.ndarray:
+def texel_response(vis, rows: slice | None = None, block: int = 512) -> np.ndarray:
     """(N,) sum over the rows' pixels of (V_ji max(0, N_j . d_i) omega_i)^2: the diagonal of the
-    Lambertian (kd = 1) G = T'T of these pixels alone, what the observability map shows."""
+    Lambertian (kd = 1) G = T'T of these pixels alone, what the observability map shows. (V is 0 or
+    1 or a fraction: V^2 cos^2 summed per texel, omega^2 after; blocks in place on both cores.)"""
     from ..geometry.visibility import decode
+    from ..threads import parallel_blocks
 
     rows = rows or slice(0, vis.n_pixels)
+    N = vis.cube.n_texels
     dirs = vis.cube.directions.astype(np.float32)
-    omega = vis.cube.solid_angles.astype(np.float32)
-    out = np.zeros(vis.cube.n_texels, np.float64)
-    for a in range(rows.start, rows.stop, block):
-        sl = slice(a, min(rows.stop, a + block))
-        V = decode(np.asarray(vis.stored[sl]), vis.cube.n_texels, vis.encoding)
-        cos = np.maximum(vis.samples.normal[sl].astype(np.float32) @ dirs.T, 0)
-        out += ((V * cos * omega) ** 2).sum(axis=0, dtype=np.float64)
-    return out
+    normals = vis.samples.normal
+    partial = {}
+
+    def run(starts):
+        acc = np.zeros(N, np.float64)
+        c = np.empty((block, N), np.float32)
+        for a in starts:
+            sl = slice(a, min(rows.stop, a + block))
+            k = sl.stop - sl.start
+            cos = c[:k]
+            np.matmul(normals[sl].astype(np.float32), dirs.T, out=cos)
+            np.maximum(cos, 0.0, out=cos)
+            cos *= cos
+            V = decode(np.asarray(vis.stored[sl]), N, vis.encoding, raw=True)  # (bits: 0/1, V^2 = V)
+            cos *= V if vis.encoding == "bits" else V * V
+            acc += cos.sum(axis=0, dtype=np.float64)
+        partial[starts[0] if starts else -1] = acc
+
+    parallel_blocks(run, list(range(rows.start, rows.stop, block)))
+    out = sum(partial.values()) if partial else np.zeros(N, np.float64)
+    return out * vis.cube.solid_angles.astype(np.float64) ** 2
 
 
 def responses(vis, layout: Layout) -> np.ndarray:
