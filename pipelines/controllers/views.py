@@ -238,8 +238,8 @@ def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, a
     A Lambertian light of EXPOSURE_FACE x EXPOSURE_FACE texels a face (>= 0) and the gains (and,
     with several parts, the parts' albedo factors: a row of part p in view v is predicted
     s_p e_v kd_p D L) are fitted together by variable projection: the light is re-solved for every
-    trial value in a golden-section search over each unknown in turn (as `parts.varpro_scales`),
-    on up to EXPOSURE_ROWS used pixels of each view; the rows the fit explains worst (a highlight:
+    trial value in a bounded search (`parts.bounded_search`) over each unknown in turn (as
+    `parts.varpro_scales`), on up to EXPOSURE_ROWS used pixels of each view; the rows the fit explains worst (a highlight:
     beyond EXPOSURE_TRIM robust sigmas) are then left out and the fit repeated.
     """
     import time
@@ -248,7 +248,7 @@ def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, a
     from ..light.haar import uniform_tree
     from ..light.nnls import nnls_gram
     from ..light.rows import Pyramid, _gram
-    from ..model.parts import golden_search
+    from ..model.parts import bounded_search
     from ..model.render import diffuse_transport
 
     t0 = time.perf_counter()
@@ -305,7 +305,7 @@ def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, a
                         e2 = e.copy()
                         e2[k] = np.exp(x)
                         return objective(systems, e2, s)
-                    e[k] = np.exp(golden_search(fe, float(np.log(e[k])), EXPOSURE_SPAN, EXPOSURE_EVALUATIONS))
+                    e[k] = np.exp(bounded_search(fe, float(np.log(e[k])), EXPOSURE_SPAN, EXPOSURE_EVALUATIONS))
             for p in range(n_parts):
                 if p == ref or not any(q == p for q, _ in seen):
                     continue
@@ -317,7 +317,7 @@ def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, a
                             s2[p, c] = np.exp(x)
                         return objective(systems, e, s2, range(3) if c is None else [c])
                     x0 = float(np.log(s[p]).mean() if c is None else np.log(s[p, c]))
-                    x = golden_search(fs, x0, EXPOSURE_SPAN, EXPOSURE_EVALUATIONS)
+                    x = bounded_search(fs, x0, EXPOSURE_SPAN, EXPOSURE_EVALUATIONS)
                     if c is None:
                         s[p] = np.exp(x)
                     else:

@@ -749,23 +749,20 @@ class ViewShading:
 
 
 # -- the per-part factors with the light re-solved: variable projection on a fixed tree -------------
-def golden_search(f, x0: float, span: float, evaluations: int) -> float:
-    """The minimum of f over [x0 - span, x0 + span] by golden-section search (x0 if f is no lower there)."""
-    lo, hi = x0 - span, x0 + span
+def bounded_search(f, x0: float, span: float, evaluations: int) -> float:
+    """The minimum of f over [x0 - span, x0 + span] (x0 if f is no lower there), to the precision
+    `evaluations` steps of golden-section search reach (the interval shrunk by 0.618^evaluations).
+
+    Brent's bounded method (golden sections where a parabola through three points is not trusted)
+    reaches it in about half the evaluations on these smooth objectives, each an NNLS solve."""
+    from scipy.optimize import minimize_scalar
+
     g = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    fa, fb = f(a), f(b)
-    for _ in range(evaluations):
-        if fa < fb:
-            hi, b, fb = b, a, fa
-            a = hi - g * (hi - lo)
-            fa = f(a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + g * (hi - lo)
-            fb = f(b)
-    x = 0.5 * (lo + hi)
-    return x if f(x) <= f(x0) else x0
+    tol = 0.5 * (2.0 * span) * g ** evaluations
+    res = minimize_scalar(f, bounds=(x0 - span, x0 + span), method="bounded",
+                          options={"xatol": tol, "maxiter": 2 * evaluations + 10})
+    x = float(res.x)
+    return x if float(res.fun) <= f(x0) else x0
 
 
 def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span: float = 2.0,
@@ -778,7 +775,7 @@ def varpro_scales(albedo: PixelAlbedo, systems: list, max_cycles: int = 3, span:
     systems : per part q, (G (C, k, k), h (k, C), bb (C,)): the leaf-space normal equations of that
         part's rows with kd = material.kd x base (factor 1). Channel c's system at factors s is
         (sum_q s_qc^2 G_qc, sum_q s_qc h_qc), solved by NNLS; each non-reference part's factor is
-        found by golden-section search in log s (per channel for fit "colour", one shared factor
+        found by a bounded search in log s (per channel for fit "colour", one shared factor
         for "scale"), part after part, for up to `max_cycles` cycles.
     """
     return varpro_factors(systems, albedo.scales, [p.fit for p in albedo.parts.parts], max_cycles, span, evaluations)
@@ -806,7 +803,7 @@ def varpro_factors(systems: list, factors: np.ndarray, modes: list, max_cycles: 
         return float(bb + 2.0 * r.objective)
 
     def golden(f, x0: float) -> float:
-        return golden_search(f, x0, span, evaluations)
+        return bounded_search(f, x0, span, evaluations)
 
     movable = [q for q in present if modes[q] != "reference"]
     for _ in range(max_cycles if len(movable) > 1 else 1):

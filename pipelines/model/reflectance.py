@@ -586,7 +586,7 @@ def lobe_ratio(pieces: dict, material: Material, kd_reference, span: float = RAT
     rounds, the truth 2.22 and 0.67, still moving when the rounds ran out). Here the light follows
     each candidate ratio, so the ratio lands where the joint fit wants it."""
     from ..light.nnls import nnls_gram
-    from .parts import golden_search
+    from .parts import bounded_search
 
     kd = np.asarray(material.kd, np.float64)
     ks = float(np.mean(material.ks))
@@ -607,7 +607,7 @@ def lobe_ratio(pieces: dict, material: Material, kd_reference, span: float = RAT
             return float(pieces["bb"][c] + 2.0 * r.objective)
 
         before[c] = f(np.log(t0[c]))
-        x = golden_search(f, float(np.log(t0[c])), span, evaluations)
+        x = bounded_search(f, float(np.log(t0[c])), span, evaluations)
         t[c], after[c] = np.exp(x), f(x)
     inv = 1.0 / t
     ks_new = float(np.mean(kd_reference)) / float(np.mean(inv))
