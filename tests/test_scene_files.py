@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import event, given
+from hypothesis import assume, event, given
 from hypothesis import strategies as st
 
 from pipelines.errors import InputError
@@ -76,6 +76,9 @@ BAD_CAMERAS = {
     "cx-list": ({**CAMERA, "cx": [1, 2]}, "'cx'"),
     "fx-negative": ({**CAMERA, "fx": -525.0}, "'fx'"),
     "fy-zero": ({**CAMERA, "fy": 0}, "'fy'"),
+    # (fx 0.5 where 500 was meant was read, and every ray fanned out sideways: bad-input sweep)
+    "fx-field-of-view-179-deg": ({**CAMERA, "fx": 0.5}, "179.8 deg field of view"),
+    "fy-field-of-view-176-deg": ({**CAMERA, "fy": 0.5 * CAMERA["height"] / math.tan(math.radians(88))}, "fy = "),
     "fx-nan": ({**CAMERA, "fx": math.nan}, "'fx'"),
     "cy-inf": ({**CAMERA, "cy": math.inf}, "'cy'"),
     "width-fraction": ({**CAMERA, "width": 640.5}, "whole"),
@@ -427,6 +430,8 @@ def camera_is_valid_by_the_readme(doc) -> bool:
         return False
     if any(doc[k] != int(doc[k]) for k in ("width", "height")):
         return False
+    if any(2 * math.degrees(math.atan(0.5 * doc[s] / doc[f])) > 175 for f, s in (("fx", "width"), ("fy", "height"))):
+        return False  # (a field of view beyond 175 deg: a focal length not in pixels)
     dist = doc.get("dist", [0.0] * 5)
     return isinstance(dist, list) and len(dist) in (4, 5, 8, 12, 14) and all(finite_real(v) for v in dist)
 
@@ -557,6 +562,7 @@ extra_values = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(-100
        extra=st.dictionaries(text.filter(lambda k: k not in {"width", "height", "fx", "fy", "cx", "cy", "dist"}),
                              extra_values, max_size=3))
 def test_camera_round_trip_through_the_writer(workdir, width, height, fx, fy, cx, cy, dist, extra):
+    assume(fx >= 0.03 * width and fy >= 0.03 * height)  # (a field of view within 175 deg: read_camera's rule)
     cam = camera.Camera(width, height, fx, fy, cx, cy, tuple(dist), extra)
     path = workdir / "camera_rt.json"
     write_json_atomic(path, cam.to_json())

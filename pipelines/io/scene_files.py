@@ -65,6 +65,9 @@ def _array(data: dict, key: str, shape: tuple[int, ...], path: Path) -> np.ndarr
     return arr
 
 
+MAX_FIELD_OF_VIEW = 175.0  # degrees, across the image: a camera.json beyond it has its focal length wrong
+
+
 def read_camera(path: str | Path) -> Camera:
     path = Path(path)
     data = _load_json(path, "camera.json")
@@ -79,7 +82,15 @@ def read_camera(path: str | Path) -> Camera:
     dist5 = np.zeros(5)
     dist5[: min(5, dist_arr.size)] = dist_arr[:5]
     known = {"width", "height", "fx", "fy", "cx", "cy", "dist"}
-    return Camera(int(width), int(height), _number(data, "fx", path, True), _number(data, "fy", path, True),
+    fx, fy = _number(data, "fx", path, True), _number(data, "fy", path, True)
+    for key, f, size in (("fx", fx, width), ("fy", fy, height)):
+        fov = 2.0 * np.degrees(np.arctan(0.5 * size / f))
+        if fov > MAX_FIELD_OF_VIEW:  # (fx 0.5 for 500: the rays fan out sideways, the solve is nonsense)
+            raise InputError(f"{key} = {f:g} px gives a {fov:.1f} deg field of view over {size:g} pixels (a pinhole "
+                             f"camera's is below {MAX_FIELD_OF_VIEW:g} deg)", path,
+                             "give the focal length in pixels (about the image width for a normal lens), "
+                             "or rerun wavelight calibrate")
+    return Camera(int(width), int(height), fx, fy,
                   _number(data, "cx", path), _number(data, "cy", path), tuple(float(x) for x in dist5),
                   extra={k: v for k, v in data.items() if k not in known})
 
