@@ -343,7 +343,9 @@ def test_texel_response_is_the_lambertian_gram_diagonal(mitsuba_scene, supersamp
     cube = CubeMap(8)
     data = vis.compute_visibility(scene.backend, samples, cube, supersample=supersample)
     T = data.dense() * np.maximum(samples.normal @ cube.directions.T, 0) * cube.solid_angles
-    assert 0 < T.max() and (T == 0).any() and 0 < data.dense().mean() < 1
+    V = data.dense()
+    assert 0 < T.max() and (T == 0).any() and 0 < V.mean() < 1
+    assert ((V > 0) & (V < 1)).any() == (supersample > 1)  # (fractions: V^2 is not V)
     rows = slice(100, 1500)
     assert len(samples) > rows.stop
     for sl in (None, rows):

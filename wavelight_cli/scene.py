@@ -296,7 +296,8 @@ def material_from_options(material_file: Path | None, model: str | None, kd, ks,
 
     data: dict = {}
     if material_file is not None:
-        require(material_file, "check the path of the material JSON")
+        if not Path(material_file).exists() or Path(material_file).is_dir():  # (a pipe is read as it is)
+            require(material_file, "check the path of the material JSON")
         try:
             data = json.loads(Path(material_file).read_text())
         except (OSError, ValueError, UnicodeDecodeError) as exc:

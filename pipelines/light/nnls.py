@@ -75,14 +75,15 @@ def _solve_free(G: np.ndarray, h: np.ndarray, F: np.ndarray, ridge0: float, rank
         Ur = U[:rank, :rank]  # ?trtrs reads only the upper triangle
         # U'U z = h: two triangular solves (LAPACK's own: scipy's solve_triangular costs ~10 us a call
         # in its checks, and the active set calls this thousands of times on small blocks)
-        z, _ = lapack.dtrtrs(Ur, h[F][order], lower=0, trans=1)
-        z, _ = lapack.dtrtrs(Ur, z, lower=0, trans=0)
-        x = np.zeros(n)
-        x[order] = z
-        dropped[:] = True
-        dropped[order] = False
-        d = np.abs(np.diag(Ur))
-        return x, dropped, 0.0, float((d.min() / d.max()) ** 2)
+        z, info1 = lapack.dtrtrs(Ur, h[F][order], lower=0, trans=1)
+        z, info2 = lapack.dtrtrs(Ur, z, lower=0, trans=0)
+        if info1 == 0 and info2 == 0:  # (a zero pivot cannot pass pstrf's tolerance: else the ridge below)
+            x = np.zeros(n)
+            x[order] = z
+            dropped[:] = True
+            dropped[order] = False
+            d = np.abs(np.diag(Ur))
+            return x, dropped, 0.0, float((d.min() / d.max()) ** 2)
     scale = float(np.mean(np.diag(GFF)))
     for ridge in (ridge0, 1e3 * ridge0, 1e6 * ridge0):
         try:

@@ -750,8 +750,9 @@ class ViewShading:
 
 # -- the per-part factors with the light re-solved: variable projection on a fixed tree -------------
 def bounded_search(f, x0: float, span: float, evaluations: int) -> float:
-    """The minimum of f over [x0 - span, x0 + span] (x0 if f is no lower there), to the precision
-    `evaluations` steps of golden-section search reach (the interval shrunk by 0.618^evaluations).
+    """The minimum of f over [x0 - span, x0 + span] (x0 when f(x0) is below the minimum found), to
+    the precision `evaluations` steps of golden-section search reach (the interval shrunk by
+    0.618^evaluations).
 
     Brent's bounded method (golden sections where a parabola through three points is not trusted)
     reaches it in about half the evaluations on these smooth objectives, each an NNLS solve."""
@@ -802,7 +803,7 @@ def varpro_factors(systems: list, factors: np.ndarray, modes: list, max_cycles: 
         free[c] = r.x > 0
         return float(bb + 2.0 * r.objective)
 
-    def golden(f, x0: float) -> float:
+    def search(f, x0: float) -> float:
         return bounded_search(f, x0, span, evaluations)
 
     movable = [q for q in present if modes[q] != "reference"]
@@ -814,14 +815,14 @@ def varpro_factors(systems: list, factors: np.ndarray, modes: list, max_cycles: 
                     s = scales.copy()
                     s[q] = np.exp(x)
                     return sum(objective(c, s) for c in range(C))
-                scales[q] = np.exp(golden(f, float(np.log(scales[q]).mean())))
+                scales[q] = np.exp(search(f, float(np.log(scales[q]).mean())))
             else:
                 for c in range(C):
                     def f(x, q=q, c=c):
                         s = scales.copy()
                         s[q, c] = np.exp(x)
                         return objective(c, s)
-                    scales[q, c] = np.exp(golden(f, float(np.log(scales[q, c]))))
+                    scales[q, c] = np.exp(search(f, float(np.log(scales[q, c]))))
         if np.max(np.abs(scales / before - 1)) < 1e-4:
             break
     return scales

@@ -48,8 +48,8 @@ LM_TOLERANCES = {"xtol": 1e-6, "ftol": 1e-8, "gtol": 1e-8}
 PROBE_SCREEN = 2.0
 # `lobe_ratio`: a round's ks / kd_c searched within a factor e^RATIO_SPAN of its own (a first light
 # under a probe's material fitted to the Lambertian light can be 4x off in a channel: suzanne's
-# blue), in this many golden-section steps (each an NNLS on the round's tree; 0.618^17 of the
-# span: ~0.2 % in t)
+# blue), to the precision this many golden-section steps reach (0.618^17 of the span: ~0.2 % in t;
+# `parts.bounded_search`, Brent's method, gets there in fewer NNLS solves on the round's tree)
 RATIO_SPAN = float(np.log(16.0))
 RATIO_EVALUATIONS = 17
 ROUND_TOL = 1e-3  # alternation stops when a round lowers the relative RMSE by less than this
@@ -575,7 +575,7 @@ def lobe_ratio(pieces: dict, material: Material, kd_reference, span: float = RAT
                evaluations: int = RATIO_EVALUATIONS) -> tuple[Material, dict]:
     """The material's kd colour and ks with its lobe kept, the light re-solved for each (variable
     projection): per channel c only the ratio t_c = ks / kd_c is observable (the light absorbs kd_c),
-    and it is found by golden-section search in log t_c within `span` of the material's own,
+    and it is found by a bounded search (`parts.bounded_search`) in log t_c within `span` of the material's own,
     each evaluation an NNLS of the leaf-space system `rows.lobe_pieces` gives
     (G(t) = DD + t (X + X') + t^2 SS, h(t) = hD_c + t hS_c). Returns the material with kd_c = ks / t_c,
     ks grey, normalised to mean(kd) = mean(kd_reference), and what was found.
