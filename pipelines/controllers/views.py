@@ -239,8 +239,9 @@ def fit_exposures(vis, values: np.ndarray, usable: np.ndarray, layout: Layout, a
     with several parts, the parts' albedo factors: a row of part p in view v is predicted
     s_p e_v kd_p D L) are fitted together by variable projection: the light is re-solved for every
     trial value in a bounded search (`parts.bounded_search`) over each unknown in turn (as
-    `parts.varpro_scales`), on up to EXPOSURE_ROWS used pixels of each view; the rows the fit explains worst (a highlight:
-    beyond EXPOSURE_TRIM robust sigmas) are then left out and the fit repeated.
+    `parts.varpro_scales`), on up to EXPOSURE_ROWS used pixels of each view; the rows the fit
+    explains worst (a highlight: beyond EXPOSURE_TRIM robust sigmas) are then left out and the fit
+    repeated.
     """
     import time
 

@@ -575,8 +575,8 @@ def lobe_ratio(pieces: dict, material: Material, kd_reference, span: float = RAT
                evaluations: int = RATIO_EVALUATIONS) -> tuple[Material, dict]:
     """The material's kd colour and ks with its lobe kept, the light re-solved for each (variable
     projection): per channel c only the ratio t_c = ks / kd_c is observable (the light absorbs kd_c),
-    and it is found by a bounded search (`parts.bounded_search`) in log t_c within `span` of the material's own,
-    each evaluation an NNLS of the leaf-space system `rows.lobe_pieces` gives
+    and it is found by a bounded search (`parts.bounded_search`) in log t_c within `span` of the
+    material's own, each evaluation an NNLS of the leaf-space system `rows.lobe_pieces` gives
     (G(t) = DD + t (X + X') + t^2 SS, h(t) = hD_c + t hS_c). Returns the material with kd_c = ks / t_c,
     ks grey, normalised to mean(kd) = mean(kd_reference), and what was found.
 
