@@ -15,6 +15,7 @@ from pipelines.controllers.solve import SolveOptions, _Systems, bright_texels, p
 from pipelines.light import bases
 from pipelines.light.cubemap import CubeMap
 from pipelines.light.haar import HaarTree, subdivide
+from pipelines.light import rows as rows_module
 from pipelines.light.rows import TransportRows
 from pipelines.geometry.visibility import VisibilityData, compute_visibility
 from pipelines.io import images
@@ -118,13 +119,16 @@ def _sun_with_wrong_bits(mitsuba_scene, n_wrong: int, seed: int):
 
 
 @pytest.mark.parametrize("mode", ["system corrected", "rows updated"])
-def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene, mode):
+def test_recast_in_place_gives_the_light_of_a_system_built_anew(mitsuba_scene, mode, monkeypatch):
     """bunny_sun's sun, with wrong visibility bits toward it in some fitted and held-out rows (what
     the adaptive inference can get wrong): casting the bright directions again and exploring the
     levels on the system corrected in place ("system corrected"), or on a system built after the
     kept transport rows were updated in place ("rows updated": the controller's cast before a
     glossy model's refinement), gives the light, levels and errors of a system built from scratch
-    on the corrected visibility."""
+    on the corrected visibility. (Each tree's system projected afresh, not grown from the level
+    before: the two routes would add the same float32 sums in other orders, and a refinement on the
+    edge of its threshold can go either way; `RowsPart._grown` is held to the sums by its own test.)"""
+    monkeypatch.setattr(rows_module, "GROWN_SHARE", 0.0)
     scene, vis, texels, (values, usable, held, options), corrupt = _sun_with_wrong_bits(mitsuba_scene, 400, 0)
     systems = _Systems(corrupt, values, usable, held, options, _quiet())
     system = systems.system(Material())
@@ -530,3 +534,42 @@ def test_gram_matrices_are_the_products_of_the_rows(n, dtype):
     junk = upper + np.tril(rng.random((n, n)) + 1.0, -1)
     want = upper + np.triu(upper, 1).T
     assert np.array_equal(_symmetric(upper), want) and np.array_equal(_symmetric(junk), want)
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("material, albedo_kind", [
+    (Material(kd=(0.8, 0.5, 0.3)), "uniform"),
+    (Material(kd=(0.8, 0.5, 0.3)), "per-row"),
+    (Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"), "uniform"),
+], ids=["lambert", "lambert-per-row", "blinn-phong"])
+def test_a_refined_trees_system_grown_from_the_level_before_is_the_system_projected_afresh(
+        mitsuba_scene, precision, material, albedo_kind):
+    """A coarse-to-fine solve refines a few leaves per level: the next tree's system is the memoised
+    one's, with only the new leaves' rows and columns projected (`RowsPart._grown`). It is the system
+    the rows give when projected afresh, to the rounding of the precision its sums are taken in."""
+    _, vis = _small_vis(mitsuba_scene, resolution=16, step=3)
+    rng = np.random.default_rng(11)
+    rows = rng.permutation(vis.n_pixels)[:900]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = rng.uniform(0.5, 2.0, len(rows))
+    albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
+    tr = TransportRows(vis, rows)
+
+    def part():
+        p = tr.part(material, photo, weights, 5000, albedo=albedo)
+        return p.in_single() if precision == "single" else p
+
+    grown_part = part()
+    tree = subdivide(HaarTree.roots(vis.cube.tile_sizes), np.ones(9, bool))
+    tree = subdivide(tree, rng.random(tree.n_leaves) < 0.5)
+    grown_part.project_tree(tree)
+    taken = 0
+    for _ in range(3):  # a few leaves refined per level, as `solve_tree` does
+        tree = subdivide(tree, rng.random(tree.n_leaves) < 0.08)
+        taken += grown_part._grown(tree, grown_part._tree_key(tree)) is not None
+        got = grown_part.project_tree(tree)
+        afresh = part().project_tree(tree)
+        assert got.G.shape == afresh.G.shape and got.h.shape == afresh.h.shape
+        _assert_same_system(got, afresh, 1e-10 if precision == "double" else 2e-6)
+        np.testing.assert_array_equal(got.G, np.swapaxes(got.G, -1, -2))  # symmetric, exactly
+    assert taken == 3
