@@ -541,7 +541,9 @@ def test_gram_matrices_are_the_products_of_the_rows(n, dtype):
     (Material(kd=(0.8, 0.5, 0.3)), "uniform"),
     (Material(kd=(0.8, 0.5, 0.3)), "per-row"),
     (Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"), "uniform"),
-], ids=["lambert", "lambert-per-row", "blinn-phong"])
+    (Material(kd=(0.8, 0.5, 0.3)), "parts"),
+    (Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.2, 0.1), shininess=40.0, model="blinn-phong"), "textured parts"),
+], ids=["lambert", "lambert-per-row", "blinn-phong", "lambert-parts", "blinn-phong-textured-parts"])
 def test_a_refined_trees_system_grown_from_the_level_before_is_the_system_projected_afresh(
         mitsuba_scene, precision, material, albedo_kind):
     """A coarse-to-fine solve refines a few leaves per level: the next tree's system is the memoised
@@ -553,10 +555,15 @@ def test_a_refined_trees_system_grown_from_the_level_before_is_the_system_projec
     photo = rng.uniform(0.1, 1.0, (len(rows), 3))
     weights = rng.uniform(0.5, 2.0, len(rows))
     albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
+    if albedo_kind == "parts":  # (each part's albedo uniform: one Gram matrix a part)
+        group = rng.integers(0, 3, len(rows))
+        albedo = np.array([[1.0, 0.9, 0.8], [0.5, 0.5, 0.5], [0.2, 0.6, 1.0]])[group]
+    grouped = {} if "parts" not in albedo_kind else {"group": rng.integers(0, 3, len(rows)) if albedo_kind != "parts"
+                                                     else group, "scales": rng.uniform(0.5, 2.0, (3, 3))}
     tr = TransportRows(vis, rows)
 
     def part():
-        p = tr.part(material, photo, weights, 5000, albedo=albedo)
+        p = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
         return p.in_single() if precision == "single" else p
 
     grown_part = part()
@@ -568,8 +575,17 @@ def test_a_refined_trees_system_grown_from_the_level_before_is_the_system_projec
         tree = subdivide(tree, rng.random(tree.n_leaves) < 0.08)
         taken += grown_part._grown(tree, grown_part._tree_key(tree)) is not None
         got = grown_part.project_tree(tree)
-        afresh = part().project_tree(tree)
+        fresh = part()
+        afresh = fresh.project_tree(tree)
         assert got.G.shape == afresh.G.shape and got.h.shape == afresh.h.shape
         _assert_same_system(got, afresh, 1e-10 if precision == "double" else 2e-6)
         np.testing.assert_array_equal(got.G, np.swapaxes(got.G, -1, -2))  # symmetric, exactly
+        if grown_part._per_group:  # every piece (the lobe's cross term X is not symmetric)
+            for q, e in grown_part._tree_entry(tree).items():
+                for name, v in e.items():
+                    ref = fresh._tree_entry(tree)[q][name]
+                    assert (v is None) == (ref is None)
+                    if v is not None:
+                        scale = max(float(np.abs(ref).max()), 1e-300)
+                        assert np.abs(v - ref).max() <= (1e-10 if precision == "double" else 2e-6) * scale, name
     assert taken == 3

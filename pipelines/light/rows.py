@@ -127,6 +127,36 @@ class Pyramid:
         return out
 
 
+def _n_leaves(entry) -> int:
+    """Leaves of a memoised tree system (a SystemPart, or the pieces of `RowsPart._group_pieces`)."""
+    return len(entry.h) if isinstance(entry, SystemPart) else len(next(iter(entry.values()))["hD"])
+
+
+def _assembled(old: np.ndarray, cross: np.ndarray, kept, was, fresh, inv, rows: np.ndarray | None = None):
+    """A grown tree's square matrix ((L, L) or (C, L, L), float64, tree order; `RowsPart._grown`):
+    the old tree's entries `was` at the new positions `kept`, the new leaves' columns `cross`
+    ((..., L, k), rows in grouped leaf order: `inv` maps tree order to it) and rows: `rows`
+    ((..., k, L), grouped columns) for a matrix that is not symmetric, else cross's transpose (the
+    new leaves' own block from one triangle, mirrored: symmetric exactly)."""
+    one = old.ndim == 2
+    old, cross = (old[None], cross[None]) if one else (old, cross)
+    rows = None if rows is None else (rows[None] if one else rows)
+    L = len(inv)
+    out = np.empty((len(old), L, L))
+    for i, g in enumerate(out):
+        x = np.asarray(cross[i], np.float64)[inv]
+        g[np.ix_(kept, kept)] = np.take(np.take(old[i], was, axis=0), was, axis=1)
+        g[:, fresh] = x
+        block = x[fresh]
+        if rows is None:
+            g[fresh, :] = x.T
+            block = np.triu(block) + np.triu(block, 1).T
+        else:
+            g[fresh, :] = np.asarray(rows[i], np.float64)[:, inv]
+        g[np.ix_(fresh, fresh)] = block
+    return out[0] if one else out
+
+
 @lru_cache(maxsize=16)
 def _leaves(tile_sizes: tuple, subdivided: tuple) -> tuple:
     """`HaarTree.leaves()` of the tree of a memo key (kept for the latest trees: `RowsPart._grown`)."""
@@ -387,7 +417,7 @@ class RowsPart:
             self.memo.move_to_end(key)
             return hit[1]
         # (projected from the leaf sums in `leaf_order`, the faster gather, and put in tree order after)
-        grown = None if self._per_group else self._grown(tree, key)
+        grown = self._grown(tree, key)
         if grown is not None:
             out = grown
         elif self._per_group:
@@ -414,21 +444,23 @@ class RowsPart:
         return ((sl, self.D.leaf_sums(tree, sl, True), None if self.S is None else self.S.leaf_sums(tree, sl, True))
                 for sl in (slice(a, min(n, a + step)) for a in range(0, max(n, 1), step)))
 
-    def _grown(self, tree: HaarTree, key: tuple) -> SystemPart | None:
-        """The system of `tree` from a memoised one of a tree that shares most of its leaves (the level
-        before, in a coarse-to-fine solve: a refined leaf gives way to its four children, and every
-        other leaf's Gram entries stay what they were): only the new leaves' columns are projected,
-        A'A_new (n L k multiply-adds for k new leaves, against n L^2 / 2 for the whole A'A). The same
-        sums as projecting the tree afresh, added in another order (float rounding). None when no
-        memoised tree of these rows shares enough leaves (more than GROWN_SHARE of them new)."""
+    def _grown(self, tree: HaarTree, key: tuple):
+        """The memo's value for `tree` (as `_tree_entry`) from a memoised one of a tree that shares most
+        of its leaves (the level before, in a coarse-to-fine solve: a refined leaf gives way to its four
+        children, and every other leaf's Gram entries stay what they were): only the new leaves'
+        columns are projected, A'A_new (n L k multiply-adds for k new leaves, against n L^2 / 2 for
+        the whole A'A). The same sums as projecting the tree afresh, added in another order (float
+        rounding). None when no memoised tree of these rows shares enough leaves (more than
+        GROWN_SHARE of them new)."""
         L, versions = tree.n_leaves, self._versions()
         if self.n_rows < L:
             return None
+        kind = dict if self._per_group else SystemPart
         position = None
         best = None
         for k, (version, entry) in self.memo.items():
-            if version != versions or not isinstance(entry, SystemPart) or k[0] != key[0] or k[2:] != key[2:] \
-                    or L - len(entry.h) > GROWN_SHARE * L:  # (fewer leaves than that cannot share enough)
+            if version != versions or not isinstance(entry, kind) or k[0] != key[0] or k[2:] != key[2:] \
+                    or L - _n_leaves(entry) > GROWN_SHARE * L:  # (fewer leaves than that cannot share enough)
                 continue
             if position is None:
                 position = {leaf: j for j, leaf in enumerate(_leaves(tree.tile_sizes, tree.subdivided))}
@@ -446,6 +478,21 @@ class RowsPart:
         inv[order] = np.arange(L)
         fresh = np.flatnonzero(new)
         cols = inv[fresh]  # the new leaves' columns among the grouped leaf sums
+
+        def assembled(old, cross, rows=None):
+            return _assembled(old, cross, kept, was, fresh, inv, rows)
+
+        if self._per_group:
+            A_D = self.D.leaf_sums(tree, grouped=True)
+            A_S = None if self.S is None else self.S.leaf_sums(tree, grouped=True)
+            out = {}
+            for q, e in entry.items():
+                c = self._group_cross(A_D, A_S, np.flatnonzero(self.group == q), cols)
+                out[q] = {"bb": c["bb"], "hD": c["hD"][inv], "hS": None if c["hS"] is None else c["hS"][inv],
+                          "DD": assembled(e["DD"], c["DD"]),
+                          "X": None if c["X"] is None else assembled(e["X"], c["X"], c["X_rows"]),
+                          "SS": None if c["SS"] is None else assembled(e["SS"], c["SS"])}
+            return out
         dtype = np.float64 if self.precision == "double" else np.float32
         scale = self.channel_scale
         ref = int(np.argmax(self.kd_eff + np.asarray(self.ks))) if scale is not None else None
@@ -461,16 +508,45 @@ class RowsPart:
                 r.append(_rhs(A, b * sw[:, None]) * scale[None, :] if scale is not None else _rhs(A, b[:, c] * sw))
             A = None
             h = h + (r[0] if scale is not None else np.column_stack(r))
-        G_old = entry.G if entry.G.ndim == 3 else entry.G[None]
-        G = np.empty((len(G_old), L, L))
-        for i, (g, x) in enumerate(zip(G_old, cross)):
-            x = np.asarray(x, np.float64)[inv]  # (L, k) in tree order
-            G[i][np.ix_(kept, kept)] = np.take(np.take(g, was, axis=0), was, axis=1)
-            G[i][:, fresh] = x
-            G[i][fresh, :] = x.T
-            block = x[fresh]  # (the new leaves' own block: one triangle of it, mirrored)
-            G[i][np.ix_(fresh, fresh)] = np.triu(block) + np.triu(block, 1).T
-        return SystemPart(G[0] if entry.G.ndim == 2 else G, np.asarray(h)[inv], self.bb, self.n_pixels, scale)
+        G = assembled(entry.G, np.stack(cross) if entry.G.ndim == 3 else cross[0])
+        return SystemPart(G, np.asarray(h)[inv], self.bb, self.n_pixels, scale)
+
+    def _group_cross(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray, cols: np.ndarray) -> dict:
+        """`_group_pieces` of rows `sel` for the new leaves `cols` (columns of A_D, A_S): DD, SS their
+        columns ((C,) L x k, L x k), X its columns and "X_rows" its rows (X = a_c't is not symmetric);
+        bb, hD and hS whole."""
+        dtype = np.float64 if self.precision == "double" else np.float32
+        sw = np.sqrt(self.w[sel])
+        b = self.b[sel] * sw[:, None]
+        C = np.shape(self.kd)[-1]
+        kd = np.asarray(self.kd, np.float64)
+        kd = kd[sel] if kd.ndim == 2 else np.broadcast_to(kd, (len(sel), C))
+        t = None if A_S is None else A_S[sel].astype(dtype) * sw.astype(dtype)[:, None]
+        base = A_D[sel].astype(dtype) * sw.astype(dtype)[:, None]
+        out = {"bb": (b**2).sum(axis=0)}
+        tc = None if t is None else np.take(t, cols, axis=1)
+        if len(sel) and np.all(kd == kd[0]):  # a uniform part: one Gram matrix, kd_c^2 times
+            k = kd[0]
+            bc = np.take(base, cols, axis=1)
+            out["DD"] = k[:, None, None] ** 2 * (base.T @ bc).astype(np.float64)[None]
+            out["hD"] = np.column_stack([k[c] * _rhs(base, b[:, c]) for c in range(C)])
+            out["X"] = None if t is None else k[:, None, None] * (base.T @ tc).astype(np.float64)[None]
+            out["X_rows"] = None if t is None else k[:, None, None] * (bc.T @ t).astype(np.float64)[None]
+        else:
+            DD, hD, X, Xr = [], [], [], []
+            for c in range(C):
+                a = base * kd[:, c].astype(dtype)[:, None]
+                ac = np.take(a, cols, axis=1)
+                DD.append((a.T @ ac).astype(np.float64))
+                hD.append(_rhs(a, b[:, c]))
+                if t is not None:
+                    X.append((a.T @ tc).astype(np.float64))
+                    Xr.append((ac.T @ t).astype(np.float64))
+            out["DD"], out["hD"] = np.stack(DD), np.column_stack(hD)
+            out["X"], out["X_rows"] = (np.stack(X), np.stack(Xr)) if t is not None else (None, None)
+        out["SS"] = None if t is None else (t.T @ tc).astype(np.float64)
+        out["hS"] = None if t is None else np.column_stack([_rhs(t, b[:, c]) for c in range(C)])
+        return out
 
     def _group_pieces(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray) -> dict:
         """The system of rows `sel` (one part) split so that any factor s of the part and the material's
