@@ -36,13 +36,13 @@ MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest explo
 _CURRENT = object()  # (`TransportRows._matte`: the rows' current specular weights)
 PYRAMID_BLOCK = 1024  # rows whose block sums a thread forms at a time
 SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of at most this many leaf sums
-# `RowsPart._grown`: a tree's system extends a memoised one when at most this share of its leaves is new
-# (A'A_new costs 2 n L k flops against the whole A'A's n L^2, but spares its reordering into tree order;
-# spot_sun's explore rows, 8192 x 1100-1650 leaves: 1.7-3x faster at 27-50 % new, slower at 87 %) and
-# it has at least as many rows as leaves (with fewer, putting the L x L matrix together costs more than
-# the rows' products)
-GROWN_SHARE = 0.6
 # (memory: a block's leaf sums and weighted copies; fewer, larger blocks keep BLAS efficient)
+# `RowsPart._grown`: a tree's system extends a memoised one when at most this share of its leaves is new
+# and it has at least as many rows as leaves (with fewer, putting the L x L matrix together costs more
+# than the rows' products). Measured, not the flop count's (A'A_new is 2 n L k flops against the whole
+# A'A's n L^2: 1.2x at 60 % new, but the whole one is also mirrored and reordered into tree order):
+# spot_sun's explore rows, 8192 x 1100-1650 leaves, 1.7-3x faster at 27-50 % new, slower at 87 %
+GROWN_SHARE = 0.6
 
 
 class Pyramid:
@@ -157,7 +157,7 @@ def _assembled(old: np.ndarray, cross: np.ndarray, kept, was, fresh, inv, rows: 
     return out[0] if one else out
 
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=64)
 def _leaves(tile_sizes: tuple, subdivided: tuple) -> tuple:
     """`HaarTree.leaves()` of the tree of a memo key (kept for the latest trees: `RowsPart._grown`)."""
     return tuple(HaarTree(tile_sizes, subdivided).leaves())
@@ -451,7 +451,7 @@ class RowsPart:
         columns are projected, A'A_new (n L k multiply-adds for k new leaves, against n L^2 / 2 for
         the whole A'A). The same sums as projecting the tree afresh, added in another order (float
         rounding). None when no memoised tree of these rows shares enough leaves (more than
-        GROWN_SHARE of them new)."""
+        GROWN_SHARE of them new), or the rows are fewer than the leaves."""
         L, versions = tree.n_leaves, self._versions()
         if self.n_rows < L:
             return None
