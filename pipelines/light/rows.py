@@ -511,18 +511,23 @@ class RowsPart:
         G = assembled(entry.G, np.stack(cross) if entry.G.ndim == 3 else cross[0])
         return SystemPart(G, np.asarray(h)[inv], self.bb, self.n_pixels, scale)
 
-    def _group_cross(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray, cols: np.ndarray) -> dict:
-        """`_group_pieces` of rows `sel` for the new leaves `cols` (columns of A_D, A_S): DD, SS their
-        columns ((C,) L x k, L x k), X its columns and "X_rows" its rows (X = a_c't is not symmetric);
-        bb, hD and hS whole."""
+    def _part_rows(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray) -> tuple:
+        """Rows `sel`'s weighted arrays for `_group_pieces` and `_group_cross`: (the system's dtype,
+        b sqrt(w) (n, C), kd per row (n, C), t = sqrt(w) A_S or None, base = sqrt(w) A_D)."""
         dtype = np.float64 if self.precision == "double" else np.float32
         sw = np.sqrt(self.w[sel])
-        b = self.b[sel] * sw[:, None]
         C = np.shape(self.kd)[-1]
         kd = np.asarray(self.kd, np.float64)
         kd = kd[sel] if kd.ndim == 2 else np.broadcast_to(kd, (len(sel), C))
         t = None if A_S is None else A_S[sel].astype(dtype) * sw.astype(dtype)[:, None]
-        base = A_D[sel].astype(dtype) * sw.astype(dtype)[:, None]
+        return dtype, self.b[sel] * sw[:, None], kd, t, A_D[sel].astype(dtype) * sw.astype(dtype)[:, None]
+
+    def _group_cross(self, A_D: np.ndarray, A_S: np.ndarray | None, sel: np.ndarray, cols: np.ndarray) -> dict:
+        """`_group_pieces` of rows `sel` for the new leaves `cols` (columns of A_D, A_S): DD, SS their
+        columns ((C,) L x k, L x k), X its columns and "X_rows" its rows (X = a_c't is not symmetric);
+        bb, hD and hS whole."""
+        dtype, b, kd, t, base = self._part_rows(A_D, A_S, sel)
+        C = kd.shape[1]
         out = {"bb": (b**2).sum(axis=0)}
         tc = None if t is None else np.take(t, cols, axis=1)
         if len(sel) and np.all(kd == kd[0]):  # a uniform part: one Gram matrix, kd_c^2 times
@@ -554,14 +559,8 @@ class RowsPart:
         h_c = s_c hD_c + ks_c hS_c, with a_c = sqrt(w) kd_c A_D (kd: the part's known albedo x the
         material's kd, factor 1) and t = sqrt(w) A_S: DD_c = a_c'a_c, X_c = a_c't, SS = t't,
         hD_c = a_c'b_c sqrt(w), hS_c = t'b_c sqrt(w)."""
-        dtype = np.float64 if self.precision == "double" else np.float32
-        sw = np.sqrt(self.w[sel])
-        b = self.b[sel] * sw[:, None]
-        C = np.shape(self.kd)[-1]
-        kd = np.asarray(self.kd, np.float64)
-        kd = kd[sel] if kd.ndim == 2 else np.broadcast_to(kd, (len(sel), C))
-        t = None if A_S is None else A_S[sel].astype(dtype) * sw.astype(dtype)[:, None]
-        base = A_D[sel].astype(dtype) * sw.astype(dtype)[:, None]  # sqrt(w) A_D
+        dtype, b, kd, t, base = self._part_rows(A_D, A_S, sel)
+        C = kd.shape[1]
         out = {"bb": (b**2).sum(axis=0)}
         if len(sel) and np.all(kd == kd[0]):  # a uniform part (no texture): a_c = kd_c sqrt(w) A_D, one Gram
             k = kd[0]
