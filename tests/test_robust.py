@@ -257,6 +257,41 @@ def test_specks_and_glints_do_not_drag_the_light(solved, tmp_path):
         rep["down_weighted_pixels"], spoiled)
 
 
+def test_the_solve_under_the_robust_weights_takes_over_the_systems_before(solved, tmp_path, monkeypatch):
+    """Solving again under the robust weights, the tree systems of the solve before are taken over,
+    corrected for the few rows whose weight changed (`rows.RowsPart.adopt`), not projected afresh:
+    the light, its level and its errors are those of the solve that projects them afresh (to the
+    rounding of the float32 exploration)."""
+    from pipelines.light import rows as rows_module
+
+    scene = copy_scene(solved, tmp_path / "specks")
+    _specks(scene)
+    taken = []
+    adopt = rows_module.RowsPart.adopt
+
+    def counted(self, other):
+        n = adopt(self, other)
+        taken.append(n)
+        return n
+
+    monkeypatch.setattr(rows_module.RowsPart, "adopt", counted)
+    ok(invoke(scene, "solve", "--resolution", RES))
+    over, over_probe = _report(scene), _probe_errors(scene)
+    assert over["robust"]["rounds"] >= 1 and any(n for n in taken), taken  # (rows changed, systems taken over)
+    monkeypatch.setattr(rows_module, "ADOPT_SHARE", -1.0)  # (nothing taken over: every system projected afresh)
+    taken.clear()
+    ok(invoke(scene, "solve", "--resolution", RES, "--force"))
+    fresh, fresh_probe = _report(scene), _probe_errors(scene)
+    assert not any(n is not None for n in taken)
+    assert over["robust"]["rounds"] == fresh["robust"]["rounds"]
+    assert over["robust"]["down_weighted_pixels"] == fresh["robust"]["down_weighted_pixels"]
+    a, b = over["solution"], fresh["solution"]
+    assert a["chosen_level"] == b["chosen_level"], (a["chosen_level"], b["chosen_level"])
+    assert abs(a["held_out_rmse"] - b["held_out_rmse"]) <= 1e-3 * b["held_out_rmse"], (a["held_out_rmse"], b["held_out_rmse"])
+    for k in ("diffuse", "glossy"):
+        assert abs(over_probe[k] - fresh_probe[k]) <= 0.02 * fresh_probe[k], (k, over_probe, fresh_probe)
+
+
 # -- a glossy scene: the specular term refitted under the weights -------------------------------------
 
 def _spoil(photo, pixels, share=0.02, seed=5):

@@ -97,6 +97,61 @@ def test_corrected_tree_systems_equal_systems_projected_afresh(mitsuba_scene, ma
     assert np.abs(kept.G - fresh.project_tree(trees[1]).G).max() == 0.0  # projected again, not corrected
 
 
+@pytest.mark.parametrize("material", [
+    Material(kd=(0.8, 0.5, 0.3)),
+    Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"),
+    Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2),
+], ids=["lambert", "blinn-phong", "plastic"])
+@pytest.mark.parametrize("albedo_kind", ["uniform", "per-row", "parts"])
+def test_systems_taken_over_under_new_weights_equal_systems_projected_afresh(mitsuba_scene, material, albedo_kind):
+    """The robust pass gives a few rows other weights (and a clipped pixel's row another target): the
+    systems memoised under the old ones, taken over (`RowsPart.adopt`), are the systems of the new
+    weights projected afresh; a head's, whose weights all scale with the changed ones, too."""
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(5)
+    rows = rng.permutation(vis.n_pixels)[:600]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = rng.uniform(0.5, 2.0, len(rows))
+    weights[[10, 500]] = 0.0  # (rows without weight before: a clipped pixel's bound, not yet fitted)
+    albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
+    grouped = {} if albedo_kind != "parts" else {"group": rng.integers(0, 3, len(rows)),
+                                                  "scales": rng.uniform(0.5, 2.0, (3, 3))}
+    trees = _trees(vis.cube)
+    tr = TransportRows(vis, rows)
+    fit = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
+    head = fit.head(256, "single")
+    for t in trees:
+        fit.project_tree(t), head.project_tree(t)
+
+    new_w, new_photo = weights.copy(), photo.copy()
+    down = np.array([3, 70, 255, 256, 400, 599])  # inside the head and beyond it
+    new_w[down] *= np.array([0.0, 0.3, 0.0, 0.5, 0.0, 0.9])
+    new_w[[10, 500]] = 1.0
+    new_photo[[10, 77]] *= 1.3  # (a bound's target moves with the prediction)
+    fit2 = tr.part(material, new_photo, new_w, 5000, albedo=albedo, **grouped)
+    head2 = fit2.head(256, "single")
+    assert fit2.adopt(fit) == 9 and not fit.memo  # 6 down, 2 given weight, 77 moved
+    assert head2.adopt(head) == 5  # 3, 10, 70, 77, 255: the rest of the head only rescaled
+    fresh = tr.part(material, new_photo, new_w, 5000, albedo=albedo, **grouped)
+    fresh_head = fresh.head(256, "single")
+    for t in trees:
+        assert fit2._tree_key(t) in fit2.memo and head2._tree_key(t) in head2.memo  # taken over
+        _assert_same_system(fit2.project_tree(t), fresh.project_tree(t), 1e-9)
+        _assert_same_system(head2.project_tree(t), fresh_head.project_tree(t), 2e-6)  # float32 sums
+        if fit2._per_group:  # every piece, bb included
+            for q, e in fit2._tree_entry(t).items():
+                for name, v in e.items():
+                    ref = fresh._tree_entry(t)[q][name]
+                    if v is not None:
+                        assert np.abs(v - ref).max() <= 1e-9 * max(float(np.abs(ref).max()), 1e-300), name
+    # nothing taken over: another material, or so many rows changed that projecting afresh is cheaper
+    other = tr.part(Material(kd=(0.3, 0.3, 0.3)), new_photo, new_w, 5000, albedo=albedo, **grouped)
+    assert other.adopt(fit2) is None and fit2.memo
+    many = weights.copy()
+    many[: len(rows) // 3] *= 0.5
+    assert tr.part(material, photo, many, 5000, albedo=albedo, **grouped).adopt(fit2) is None
+
+
 def _sun_with_wrong_bits(mitsuba_scene, n_wrong: int, seed: int):
     """bunny_sun at R = 16 (every 3rd pixel), its sun's texels (`bright_texels` of a first light), and
     its visibility with the bit toward the sun flipped in `n_wrong` random pixels that face it (what

@@ -163,6 +163,12 @@ def material_text(m: Material) -> str:
 
 
 # -- the systems ----------------------------------------------------------------------------------
+def _same_material(a: Material, b: Material) -> bool:
+    return (np.array_equal(a.kd, b.kd) and np.array_equal(a.ks, b.ks)
+            and (a.model, a.shininess, a.roughness, a.distribution, a.ior)
+            == (b.model, b.shininess, b.roughness, b.distribution, b.ior))
+
+
 class _Systems:
     """Builds the light system of a material on the chosen route (dense, or sampled rows)."""
 
@@ -174,6 +180,7 @@ class _Systems:
         self.albedo = albedo  # model.parts.PixelAlbedo or None (uniform)
         self.options, self.progress = options, progress
         self.sample_info = None
+        self._reweighted = None  # the system solved before the robust pass's new weights (`robust`)
         # what the rows are fitted to: the photo; after the robust pass (`robust`) a clipped channel's
         # bound, or its prediction where that is brighter (a pixel with another channel below its bound)
         self.targets = values
@@ -217,6 +224,12 @@ class _Systems:
             return ne
         t0 = time.perf_counter()
         fs, hs = self.fit_sample, self.held_sample
+        # the system solved before the robust pass's weights, if of this material: its tree systems are
+        # taken over (any other goes before this one's transport is built: memory)
+        before, self._reweighted = self._reweighted, None
+        if before is not None and (round_rows is not None or not _same_material(before[0], material)):
+            before = None
+        before = None if before is None else before[1]
         a = self.albedo
         # several parts: the rows keep each part's known albedo and the factors apart (`RowsPart.group`),
         # so that a Lambertian system serves other factors without a pass over the rows (`rows.with_scales`)
@@ -229,7 +242,12 @@ class _Systems:
         held = self.held_rows.part(material, self.targets[hs.rows], self.held_w, hs.candidates,
                                    albedo=None if a is None else a.base[hs.rows],
                                    group=None if a is None else a.part[hs.rows], **grouped)
-        return LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
+        out = LightSystem(fit, held, time.perf_counter() - t0, fit.head(EXPLORE_ROWS, "single"))
+        if before is not None:  # (the robust pass: the same rows under new weights, `robust`)
+            for mine, theirs in ((out.fit, before.fit), (out.held_out, before.held_out), (out.explore, before.explore)):
+                if hasattr(mine, "adopt"):
+                    mine.adopt(theirs)
+        return out
 
     def keep_only(self, material: Material) -> None:
         """Once the model is chosen: the kept transports of the other candidates go (memory)."""
@@ -281,9 +299,14 @@ class _Systems:
         return (np.concatenate([fs.rows[top], fs.rows[rest], hs.rows[:nh]]),
                 np.concatenate([fw[top], w_rest, w_held]))
 
-    def robust(self, weights: np.ndarray, targets: np.ndarray) -> None:
+    def robust(self, weights: np.ndarray, targets: np.ndarray, system=None, material: Material | None = None) -> None:
         """Fit the sampled rows with per-pixel robust weights (P,) and targets (P, C) (`light.robust`:
-        the pixel's weight multiplies the pixels its row stands for)."""
+        the pixel's weight multiplies the pixels its row stands for). `system`: the sampled system of
+        `material` solved under the weights before; the next system built of that material takes
+        over its memoised tree systems, corrected for the rows whose weight or target changed
+        (`rows.RowsPart.adopt`: a few, so exploring the levels again needs no pass over the rows)."""
+        self._reweighted = (material, system) if (system is not None and material is not None
+                                                  and not self.options.exact) else None
         self.targets = targets
         self.fit_w = self.fit_sample.weights * weights[self.fit_sample.rows]
         self.held_w = self.held_sample.weights * weights[self.held_sample.rows]
@@ -1074,9 +1097,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                           + (f", {int((bound & ~satisfied).sum())} clipped pixels below their bound"
                              if bound.any() else "")
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
-            systems.robust(w, t)
-            # (the system under the weights before is stale: its transport rows go before the next
-            # one's are built, every branch below builds its own: memory)
+            systems.robust(w, t, system, material)
+            # (the system under the weights before is stale: every branch below builds its own, which
+            # takes over its tree systems if of the same material; else its transport rows go before
+            # the next one's are built: memory)
             result.context = system = None
             again = None
             if k == 0 and auto_select is not None and (albedo is None or len(albedo.parts.parts) < 2):

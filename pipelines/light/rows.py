@@ -43,6 +43,9 @@ SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of a
 # A'A's n L^2: 1.2x at 60 % new, but the whole one is also mirrored and reordered into tree order):
 # spot_sun's explore rows, 8192 x 1100-1650 leaves, 1.7-3x faster at 27-50 % new, slower at 87 %
 GROWN_SHARE = 0.6
+# `RowsPart.adopt`: memoised systems are corrected for other weights when at most this share of the rows
+# changed (the correction projects the changed rows twice, new and old, for every memoised tree)
+ADOPT_SHARE = 0.25
 
 
 class Pyramid:
@@ -416,17 +419,20 @@ class RowsPart:
         if hit is not None and hit[0] == self._versions():
             self.memo.move_to_end(key)
             return hit[1]
-        # (projected from the leaf sums in `leaf_order`, the faster gather, and put in tree order after)
+        # (projected from the leaf sums in `leaf_order`, the faster gather, and put in tree order after;
+        # fewer rows than leaves, the few rows a correction projects (`correct`, `adopt`): gathered in
+        # tree order, as reordering the L x L products would cost more than forming them)
         grown = self._grown(tree, key)
+        grouped = self.n_rows >= tree.n_leaves
         if grown is not None:
             out = grown
         elif self._per_group:
-            A_D = self.D.leaf_sums(tree, grouped=True)
-            A_S = None if self.S is None else self.S.leaf_sums(tree, grouped=True)
+            A_D = self.D.leaf_sums(tree, grouped=grouped)
+            A_S = None if self.S is None else self.S.leaf_sums(tree, grouped=grouped)
             out = {int(q): self._group_pieces(A_D, A_S, np.flatnonzero(self.group == q)) for q in np.unique(self.group)}
         else:  # (block by block: the leaf sums of all rows, weighted per channel, would be held at once)
-            out = self._system(None, None, self._row_blocks(tree))
-        if grown is None:
+            out = self._system(None, None, self._row_blocks(tree, grouped))
+        if grown is None and grouped:
             out = _in_tree_order(out, leaf_order(tree))
         self.memo[key] = (self._versions(), out)
         while len(self.memo) > MEMO_TREES:  # (memory: leaves^2 per tree, part, channel)
@@ -436,12 +442,12 @@ class RowsPart:
             del self.memo[min(self.memo, key=_tree_size)]
         return out
 
-    def _row_blocks(self, tree: HaarTree):
-        """(row slice, its A_D, its A_S): the rows' leaf sums in `leaf_order`, block by block (memory:
-        at most SYSTEM_BLOCK_VALUES leaf sums a block)."""
+    def _row_blocks(self, tree: HaarTree, grouped: bool = True):
+        """(row slice, its A_D, its A_S): the rows' leaf sums in `leaf_order` (or, not `grouped`, in
+        tree order), block by block (memory: at most SYSTEM_BLOCK_VALUES leaf sums a block)."""
         n = self.n_rows
         step = -(-n // max(1, -(-n * tree.n_leaves // SYSTEM_BLOCK_VALUES))) if n else 1
-        return ((sl, self.D.leaf_sums(tree, sl, True), None if self.S is None else self.S.leaf_sums(tree, sl, True))
+        return ((sl, self.D.leaf_sums(tree, sl, grouped), None if self.S is None else self.S.leaf_sums(tree, sl, grouped))
                 for sl in (slice(a, min(n, a + step)) for a in range(0, max(n, 1), step)))
 
     def _grown(self, tree: HaarTree, key: tuple):
@@ -648,6 +654,75 @@ class RowsPart:
             else:
                 entry = fix(entry, a, c)
             self.memo[key] = (self._versions(), entry)
+
+    def adopt(self, other: "RowsPart") -> int | None:
+        """Take over `other`'s memoised tree systems: the same transport rows under other weights
+        and targets (the robust pass's: a few pixels down-weighted, a clipped pixel's bound moved).
+        Every weight of `other` times one common factor s (a head's, whose weights are scaled to
+        stand for all pixels, changes with theirs) is this part's but at the changed rows, so each
+        system is s times the old one plus the changed rows' new system minus their old one: exactly
+        the system projected afresh, at the cost of those rows alone. `other`'s memo is emptied.
+        Returns how many rows changed, or None when nothing is taken over (other transport, other
+        material, or more than ADOPT_SHARE of the rows changed: projecting afresh is then cheaper)."""
+        if not isinstance(other, RowsPart) or other is self or not other.memo:
+            return None
+        same_rows = (other.n_rows == self.n_rows and other.precision == self.precision
+                     and other.D.version is self.D.version and len(other.D.rows) == len(self.D.rows)
+                     and (other.S is None) == (self.S is None)
+                     and (self.S is None or other.S.version is self.S.version)
+                     and other.split_specular == self.split_specular
+                     and np.array_equal(other.kd, self.kd) and np.array_equal(other.ks, self.ks)
+                     and (other.group is None) == (self.group is None)
+                     and (self.group is None or np.array_equal(other.group, self.group)))
+        if same_rows and self.group is not None and not self._per_group:  # (systems at the factors)
+            same_rows = (np.array_equal(other.group_scales, self.group_scales)
+                         and (other.group_ks is None) == (self.group_ks is None)
+                         and (self.group_ks is None or np.array_equal(other.group_ks, self.group_ks)))
+        keep = [(k, v[1]) for k, v in other.memo.items() if v[0] == self._versions()]
+        if not same_rows or not keep:
+            return None
+        same_b = np.all(other.b == self.b, axis=1)
+        both = same_b & (other.w > 0) & (self.w > 0)
+        if not both.any():
+            return None
+        s = float(np.median(self.w[both] / other.w[both]))
+        index = np.flatnonzero(~same_b | (np.abs(self.w - s * other.w) > 1e-12 * np.abs(self.w)))
+        if len(index) > ADOPT_SHARE * self.n_rows:
+            return None
+        other.memo = OrderedDict()
+        kd = self.kd[index] if np.ndim(self.kd) == 2 else self.kd
+        group = None if self.group is None else self.group[index]
+
+        def rows_part(w, b):
+            return RowsPart(Pyramid(np.ascontiguousarray(self.D.rows[index]), self.D.tile_sizes),
+                            None if self.S is None else Pyramid(np.ascontiguousarray(self.S.rows[index]),
+                                                                self.D.tile_sizes),
+                            kd, self.ks, b, w, 0, self.precision, group=group, group_scales=self.group_scales,
+                            split_specular=self.split_specular, group_ks=self.group_ks)
+
+        new, old = rows_part(self.w[index], self.b[index]), rows_part(s * other.w[index], other.b[index])
+
+        def moved(v, a, c):  # s v + (the changed rows' new sums - their old ones)
+            out = v * v.dtype.type(s)
+            if a is not None:
+                out += a - c
+            return out
+
+        memo = OrderedDict()
+        for key, entry in keep:
+            tree = HaarTree(*key[:2])
+            a, c = (new._tree_entry(tree), old._tree_entry(tree)) if len(index) else (None, None)
+            if isinstance(entry, dict):  # per part: pieces linear in the weights, bb included
+                entry = {q: {k: None if v is None else moved(v, None if a is None or q not in a else a[q][k],
+                                                            None if c is None or q not in c else c[q][k])
+                             for k, v in e.items()} for q, e in entry.items()}
+            else:
+                entry = SystemPart(moved(entry.G, None if a is None else a.G, None if c is None else c.G),
+                                   moved(entry.h, None if a is None else a.h, None if c is None else c.h),
+                                   self.bb, self.n_pixels, entry.channel_scale)
+            memo[key] = (self._versions(), entry)
+        self.memo = memo
+        return int(len(index))
 
     def in_single(self) -> "RowsPart":
         """These rows with their systems accumulated in float32 (`precision`; a memo of their own): what
