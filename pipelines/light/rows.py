@@ -35,7 +35,7 @@ from .system import SystemPart
 MEMO_TREES = 6  # tree systems a RowsPart keeps (the largest of the latest exploration's levels)
 _CURRENT = object()  # (`TransportRows._matte`: the rows' current specular weights)
 PYRAMID_BLOCK = 1024  # rows whose block sums a thread forms at a time
-SYSTEM_BLOCK_VALUES = 2**22  # a tree system is projected in blocks of rows of at most this many leaf sums
+SYSTEM_BLOCK_VALUES = 2**21  # a tree system is projected in blocks of rows of at most this many leaf sums
 # (memory: a block's leaf sums and weighted copies; fewer, larger blocks keep BLAS efficient)
 # `RowsPart._grown`: a tree's system extends a memoised one when at most this share of its leaves is new
 # and it has at least as many rows as leaves (with fewer, putting the L x L matrix together costs more

@@ -275,7 +275,7 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     return out
 
 
-def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 2048,
+def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 1024,
            albedo: np.ndarray | None = None, specular: np.ndarray | None = None) -> np.ndarray:
     """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3).
 
