@@ -24,15 +24,15 @@ def _controller():
 
 @lru_cache(maxsize=1)
 def one_malloc_arena() -> bool:
-    """Have every thread allocate from glibc's main heap (mallopt M_ARENA_MAX = 1); False where
+    """Have the threads allocate from one glibc heap (mallopt M_ARENA_MAX = 1); False where
     there is no glibc. glibc gives each thread that allocates its own arena, and what a worker
     thread frees stays in its arena: the block-sized temporaries of `parallel_blocks` (1-30 MB,
     below glibc's adaptive mmap threshold) held ~185 MB of teapot_sun_phong's peak RSS at R = 32
     (`solve`: 1,206 -> 1,024 MiB with one arena; with smaller blocks too, 987 MiB and ~4 % more time,
     the median of six interleaved pairs; spot_sun 0.78 -> 0.67 GiB and no slower). Numpy's
     temporaries are few and large, so the threads hardly wait on the one arena's lock. Called
-    before the worker threads first allocate (the CLI calls it at start); later it still binds the
-    threads that have no arena yet."""
+    before the worker threads first allocate (the CLI calls it at start); a thread that already has
+    an arena keeps it, and glibc may hand such an arena to a later thread too."""
     import ctypes
     import sys
 

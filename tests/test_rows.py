@@ -102,11 +102,14 @@ def test_corrected_tree_systems_equal_systems_projected_afresh(mitsuba_scene, ma
     Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"),
     Material(kd=(0.5, 0.4, 0.3), ks=(1.0, 1.0, 1.0), model="plastic", roughness=0.2),
 ], ids=["lambert", "blinn-phong", "plastic"])
-@pytest.mark.parametrize("albedo_kind", ["uniform", "per-row", "parts"])
+@pytest.mark.parametrize("albedo_kind", ["uniform", "per-row", "parts", "parts-joint"])
 def test_systems_taken_over_under_new_weights_equal_systems_projected_afresh(mitsuba_scene, material, albedo_kind):
     """The robust pass gives a few rows other weights (and a clipped pixel's row another target): the
     systems memoised under the old ones, taken over (`RowsPart.adopt`), are the systems of the new
-    weights projected afresh; a head's, whose weights all scale with the changed ones, too."""
+    weights projected afresh; a head's, whose weights all scale with the changed ones, too. Parts
+    "joint": a glossy system kept for its part factors (not per part), whose memo also holds a
+    system of other factors (`with_scales`): that one is not taken over, and the copy that
+    shares the memo keeps its systems as they were."""
     _, vis = _small_vis(mitsuba_scene)
     rng = np.random.default_rng(5)
     rows = rng.permutation(vis.n_pixels)[:600]
@@ -114,14 +117,20 @@ def test_systems_taken_over_under_new_weights_equal_systems_projected_afresh(mit
     weights = rng.uniform(0.5, 2.0, len(rows))
     weights[[10, 500]] = 0.0  # (rows without weight before: a clipped pixel's bound, not yet fitted)
     albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
-    grouped = {} if albedo_kind != "parts" else {"group": rng.integers(0, 3, len(rows)),
-                                                  "scales": rng.uniform(0.5, 2.0, (3, 3))}
+    grouped = {} if not albedo_kind.startswith("parts") else {
+        "group": rng.integers(0, 3, len(rows)), "scales": rng.uniform(0.5, 2.0, (3, 3)),
+        "split_specular": albedo_kind == "parts", "ks_scales": None}
     trees = _trees(vis.cube)
     tr = TransportRows(vis, rows)
     fit = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
     head = fit.head(256, "single")
     for t in trees:
         fit.project_tree(t), head.project_tree(t)
+    sibling = None
+    if albedo_kind == "parts-joint":  # (other factors, the memo shared; Lambert's systems are per part)
+        sibling = fit.with_scales(rng.uniform(0.5, 2.0, (3, 3)))
+        kept = {t.subdivided: sibling.project_tree(t) for t in trees}
+        assert sibling.memo is fit.memo and len(fit.memo) == (3 if fit._per_group else 6)
 
     new_w, new_photo = weights.copy(), photo.copy()
     down = np.array([3, 70, 255, 256, 400, 599])  # inside the head and beyond it
@@ -144,6 +153,11 @@ def test_systems_taken_over_under_new_weights_equal_systems_projected_afresh(mit
                     ref = fresh._tree_entry(t)[q][name]
                     if v is not None:
                         assert np.abs(v - ref).max() <= 1e-9 * max(float(np.abs(ref).max()), 1e-300), name
+    if sibling is not None:  # (its systems, of other factors, are neither taken over nor changed)
+        assert len(fit2.memo) == 3
+        for t in trees:
+            got = sibling._combined(sibling.memo[sibling._tree_key(t)][1])
+            np.testing.assert_array_equal(got.G, kept[t.subdivided].G)
     # nothing taken over: another material, or so many rows changed that projecting afresh is cheaper
     other = tr.part(Material(kd=(0.3, 0.3, 0.3)), new_photo, new_w, 5000, albedo=albedo, **grouped)
     assert other.adopt(fit2) is None and fit2.memo

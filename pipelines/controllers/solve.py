@@ -1098,9 +1098,10 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
                              if bound.any() else "")
                           + f" ({100 * influence:.1f} % of the squared error moved): solving again")
             systems.robust(w, t, system, material)
-            # (the system under the weights before is stale: every branch below builds its own, which
-            # takes over its tree systems if of the same material; else its transport rows go before
-            # the next one's are built: memory)
+            # (the system under the weights before is stale: every branch below builds its own; the
+            # first one built takes over its tree systems if of the same material and all rows (a
+            # Lambertian re-solve, auto's Lambertian light; not a reflectance round's smaller one);
+            # else it goes before the next transport rows are built: memory)
             result.context = system = None
             again = None
             if k == 0 and auto_select is not None and (albedo is None or len(albedo.parts.parts) < 2):

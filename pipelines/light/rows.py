@@ -620,7 +620,9 @@ class RowsPart:
         corrected by the rows' change (the new rows' system minus the old rows'), exactly as if it
         were projected again, at the cost of those rows alone."""
         index = np.asarray(index, np.int64)
-        keep = OrderedDict((k, v) for k, v in self.memo.items() if v[0] == stale)
+        # (a memo shared with copies of other factors, `with_scales`: theirs go, stale)
+        keep = OrderedDict((k, v) for k, v in self.memo.items()
+                           if v[0] == stale and k == self._tree_key(HaarTree(*k[:2])))
         self.memo = OrderedDict()
         if not len(keep):
             return
@@ -649,6 +651,7 @@ class RowsPart:
         for key, (_, entry) in keep.items():
             tree = HaarTree(*key[:2])
             a, c = new._tree_entry(tree), old._tree_entry(tree)
+            new.memo.clear(), old.memo.clear()  # (the changed rows' systems of one tree at a time: memory)
             if isinstance(entry, dict):  # per part: only the parts of the changed rows change
                 entry = {q: fix_pieces(e, a[q], c[q]) if q in a else e for q, e in entry.items()}
             else:
@@ -663,7 +666,9 @@ class RowsPart:
         system is s times the old one plus the changed rows' new system minus their old one: exactly
         the system projected afresh, at the cost of those rows alone. `other`'s memo is emptied.
         Returns how many rows changed, or None when nothing is taken over (other transport, other
-        material, or more than ADOPT_SHARE of the rows changed: projecting afresh is then cheaper)."""
+        material, or more than ADOPT_SHARE of the rows changed: projecting afresh is then cheaper).
+        (A copy of `other` with other part factors, `with_scales`, shares its memo dict and keeps
+        it: its systems are neither taken nor changed.)"""
         if not isinstance(other, RowsPart) or other is self or not other.memo:
             return None
         same_rows = (other.n_rows == self.n_rows and other.precision == self.precision
@@ -678,7 +683,10 @@ class RowsPart:
             same_rows = (np.array_equal(other.group_scales, self.group_scales)
                          and (other.group_ks is None) == (self.group_ks is None)
                          and (self.group_ks is None or np.array_equal(other.group_ks, self.group_ks)))
-        keep = [(k, v[1]) for k, v in other.memo.items() if v[0] == self._versions()]
+        # (a memo shared with copies of other factors, `with_scales`, holds their systems too: only those
+        # kept for this part's own key are taken)
+        keep = [(k, v[1]) for k, v in other.memo.items()
+                if v[0] == self._versions() and k == self._tree_key(HaarTree(*k[:2]))]
         if not same_rows or not keep:
             return None
         same_b = np.all(other.b == self.b, axis=1)
@@ -709,9 +717,12 @@ class RowsPart:
             return out
 
         memo = OrderedDict()
-        for key, entry in keep:
+        keep.reverse()
+        while keep:  # (tree by tree, each old system and the changed rows' ones let go once used: memory)
+            key, entry = keep.pop()
             tree = HaarTree(*key[:2])
             a, c = (new._tree_entry(tree), old._tree_entry(tree)) if len(index) else (None, None)
+            new.memo.clear(), old.memo.clear()
             if isinstance(entry, dict):  # per part: pieces linear in the weights, bb included
                 entry = {q: {k: None if v is None else moved(v, None if a is None or q not in a else a[q][k],
                                                             None if c is None or q not in c else c[q][k])
