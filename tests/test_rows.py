@@ -46,6 +46,33 @@ def _assert_same_system(a, b, rtol):
     np.testing.assert_allclose(a.bb, b.bb, rtol=1e-12)
 
 
+def _memoised_parts(mitsuba_scene, material, albedo_kind: str, seed: int, unweighted=()):
+    """600 random rows of a small bunny_sun with random photo values, weights (0 at `unweighted`) and
+    albedo of `albedo_kind` ("parts-joint": a glossy system kept for its part factors, not per part),
+    their part and its float32 head of 256 rows with the three `_trees` projected (memoised).
+    Returns (vis, rng, rows, photo, weights, albedo, grouped, trees, transport rows, part, head)."""
+    _, vis = _small_vis(mitsuba_scene)
+    rng = np.random.default_rng(seed)
+    rows = rng.permutation(vis.n_pixels)[:600]
+    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
+    weights = rng.uniform(0.5, 2.0, len(rows))
+    weights[list(unweighted)] = 0.0
+    albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
+    grouped = {}
+    if albedo_kind == "parts":
+        grouped = {"group": rng.integers(0, 3, len(rows)), "scales": rng.uniform(0.5, 2.0, (3, 3))}
+    elif albedo_kind == "parts-joint":
+        grouped = {"group": rng.integers(0, 3, len(rows)), "scales": rng.uniform(0.5, 2.0, (3, 3)),
+                   "split_specular": False}
+    trees = _trees(vis.cube)
+    tr = TransportRows(vis, rows)
+    fit = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
+    head = fit.head(256, "single")
+    for t in trees:
+        fit.project_tree(t), head.project_tree(t)
+    return vis, rng, rows, photo, weights, albedo, grouped, trees, tr, fit, head
+
+
 @pytest.mark.parametrize("material", [
     Material(kd=(0.8, 0.5, 0.3)),
     Material(kd=(0.6, 0.6, 0.6), ks=(0.3, 0.3, 0.3), shininess=40.0, model="blinn-phong"),
@@ -53,21 +80,8 @@ def _assert_same_system(a, b, rtol):
 ], ids=["lambert", "blinn-phong", "plastic"])
 @pytest.mark.parametrize("albedo_kind", ["uniform", "per-row", "parts"])
 def test_corrected_tree_systems_equal_systems_projected_afresh(mitsuba_scene, material, albedo_kind):
-    _, vis = _small_vis(mitsuba_scene)
-    rng = np.random.default_rng(3)
-    rows = rng.permutation(vis.n_pixels)[:600]
-    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
-    weights = rng.uniform(0.5, 2.0, len(rows))
-    albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
-    grouped = {} if albedo_kind != "parts" else {"group": rng.integers(0, 3, len(rows)),
-                                                  "scales": rng.uniform(0.5, 2.0, (3, 3))}
-    trees = _trees(vis.cube)
-
-    tr = TransportRows(vis, rows)
-    fit = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
-    head = fit.head(256, "single")
-    for t in trees:
-        fit.project_tree(t), head.project_tree(t)
+    vis, rng, rows, photo, weights, albedo, grouped, trees, tr, fit, head = _memoised_parts(
+        mitsuba_scene, material, albedo_kind, 3)
     untouched = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)  # memoises, is not corrected
     untouched.project_tree(trees[1])
 
@@ -110,22 +124,9 @@ def test_systems_taken_over_under_new_weights_equal_systems_projected_afresh(mit
     "joint": a glossy system kept for its part factors (not per part), whose memo also holds a
     system of other factors (`with_scales`): that one is not taken over, and the copy that
     shares the memo keeps its systems as they were."""
-    _, vis = _small_vis(mitsuba_scene)
-    rng = np.random.default_rng(5)
-    rows = rng.permutation(vis.n_pixels)[:600]
-    photo = rng.uniform(0.1, 1.0, (len(rows), 3))
-    weights = rng.uniform(0.5, 2.0, len(rows))
-    weights[[10, 500]] = 0.0  # (rows without weight before: a clipped pixel's bound, not yet fitted)
-    albedo = None if albedo_kind == "uniform" else rng.uniform(0.3, 1.2, (len(rows), 3))
-    grouped = {} if not albedo_kind.startswith("parts") else {
-        "group": rng.integers(0, 3, len(rows)), "scales": rng.uniform(0.5, 2.0, (3, 3)),
-        "split_specular": albedo_kind == "parts", "ks_scales": None}
-    trees = _trees(vis.cube)
-    tr = TransportRows(vis, rows)
-    fit = tr.part(material, photo, weights, 5000, albedo=albedo, **grouped)
-    head = fit.head(256, "single")
-    for t in trees:
-        fit.project_tree(t), head.project_tree(t)
+    # (rows 10 and 500 without weight before: a clipped pixel's bound, not yet fitted)
+    vis, rng, rows, photo, weights, albedo, grouped, trees, tr, fit, head = _memoised_parts(
+        mitsuba_scene, material, albedo_kind, 5, unweighted=(10, 500))
     sibling = None
     if albedo_kind == "parts-joint":  # (other factors, the memo shared; Lambert's systems are per part)
         sibling = fit.with_scales(rng.uniform(0.5, 2.0, (3, 3)))
