@@ -174,6 +174,7 @@ def compute_visibility(backend, samples: PixelSamples, cube: CubeMap, supersampl
 # -- adaptive visibility: cast where the image says the shadows change ------------------------------
 CAST_CHUNK = 1 << 16  # shadow rays gathered and traced together (per thread)
 BASE_PIXELS = 800  # the base grid of `coherent_visibility` has about this many pixels
+STEP_PIXELS = 1024  # pixels of a refinement step inferred and settled together (one thread's block)
 CHECK_ENTRIES = 20_000  # inferred (pixel, texel) entries re-cast to measure the inference's error
 
 
@@ -208,9 +209,10 @@ class AdaptiveStats:
 
 
 def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarray, texel: np.ndarray,
-                  cube: CubeMap, supersample: int) -> np.ndarray:
+                  cube: CubeMap, supersample: int, threads: bool = True) -> np.ndarray:
     """Visibility of selected (pixel, texel) entries: bool for supersample 1, else uint8 fractions.
-    `origins` and `geo` are per pixel (already offset, in the backend's frame)."""
+    `origins` and `geo` are per pixel (already offset, in the backend's frame); `threads` False
+    casts on the calling thread (a caller that is itself one of `parallel_blocks`' workers)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ..threads import parallel_blocks
@@ -228,7 +230,7 @@ def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarr
                 out[sl] = ~backend.occluded_local(origins[pixel[sl]], dirs32[texel[sl]])
 
         starts = list(range(0, n, CAST_CHUNK))
-        if backend.threads == 1 or len(starts) == 1:
+        if not threads or backend.threads == 1 or len(starts) == 1:
             run(starts)
         else:
             parallel_blocks(run, starts)
@@ -239,7 +241,7 @@ def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarr
     live = np.where(np.einsum("nk,nsk->ns", geo[pixel], sub) > 0, np.float32(np.inf), np.float32(-1.0)).ravel()
     dirs = sub.reshape(-1, 3)
     o = np.repeat(origins[pixel], kk, axis=0)
-    bounds = np.linspace(0, len(o), min(backend.threads, len(o)) + 1).astype(int)
+    bounds = np.linspace(0, len(o), min(backend.threads if threads else 1, len(o)) + 1).astype(int)
     parts = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
     def trace(sl):
@@ -275,6 +277,21 @@ def _pack_bits(values: np.ndarray, where) -> np.ndarray:
         return np.zeros(len(byte_rows), np.uint8)
     first = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])  # every listed byte has a set bit
     return np.add.reduceat(values.astype(np.uint8) << b.astype(np.uint8), first).astype(np.uint8)
+
+
+def _on_threads(fn, blocks: list, threads: int) -> list:
+    """[fn(b) for b in blocks] on up to `threads` threads (at most 2: the machine's cores), each
+    taking the next block when it finishes one (the blocks' costs differ: shadow boundaries)."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    workers = min(2, threads, cores, len(blocks))
+    if workers <= 1:
+        return [fn(b) for b in blocks]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(fn, blocks))
 
 
 def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersample: int = 1,
@@ -328,11 +345,11 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
     rng = np.random.default_rng(seed)
     check = []  # (pixel, texel, inferred lit) of sampled inferred entries
 
-    def settle(j: np.ndarray, need: np.ndarray, inferred_lit: np.ndarray):
-        """Cast the `need` bits of pixels j (packed rows), take the inferred values elsewhere."""
+    def settle(j: np.ndarray, need: np.ndarray, inferred_lit: np.ndarray, threads: bool = True) -> int:
+        """Cast the `need` bits of pixels j (packed rows), take the inferred values elsewhere;
+        returns the number of entries cast."""
         rows, texels, where = _set_bits(need)
-        value = _cast_entries(backend, origins, geo, j[rows], texels, cube, supersample)
-        stats.cast += len(rows)
+        value = _cast_entries(backend, origins, geo, j[rows], texels, cube, supersample, threads)
         full = value if supersample == 1 else value == 255
         lit[j] = inferred_lit & ~need
         dark[j] = can[j] & ~need & ~inferred_lit
@@ -344,6 +361,7 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
                                np.uint8(0))
             frac[j[rows], texels] = value
         known[j] = True
+        return len(rows)
 
     # the base grid: every castable texel is cast
     base = np.flatnonzero((pix[:, 0] % spacing == 0) & (pix[:, 1] % spacing == 0))
@@ -372,27 +390,37 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
         offsets = [(h * dr, h * dc) for dr, dc in ring]  # every known one of the 8 at distance h
         j = np.flatnonzero(sel & ~known)
         if len(j):
-            # the AND over the known neighbours of their lit and dark bits: a texel every known
-            # neighbour sees lit (or dark) is castable from each of them (lit and dark are subsets
-            # of castable), so the neighbours agree on it and could all see it
-            all_lit = np.full((len(j), nb), 0xFF, np.uint8)
-            all_dark = np.full((len(j), nb), 0xFF, np.uint8)
-            present = np.zeros(len(j), np.int64)
-            for dr, dc in offsets:
-                k = index[pix[j, 0] + spacing + dr, pix[j, 1] + spacing + dc]
-                ok = k >= 0
-                ok[ok] = known[k[ok]]
-                kk = k[ok]
-                present += ok
-                all_lit[ok] &= lit[kk]
-                all_dark[ok] &= dark[kk]
-            trust = present >= 4
-            agree = all_lit | all_dark
-            agree[~trust] = 0
-            need = can[j] & ~agree
-            inferred_lit = can[j] & agree & all_lit
-            inferred = can[j] & agree
-            stats.inferred_last = int(np.bitwise_count(inferred).sum(dtype=np.int64))
+            m = len(j)
+            need = np.empty((m, nb), np.uint8)  # cast these
+            inferred = np.empty((m, nb), np.uint8)  # take these from the neighbours
+            inferred_lit = np.empty((m, nb), np.uint8)  # (those of them lit)
+            blocks = [slice(a, min(m, a + STEP_PIXELS)) for a in range(0, m, STEP_PIXELS)]
+
+            def infer(b: slice):
+                # the AND over the known neighbours of their lit and dark bits: a texel every known
+                # neighbour sees lit (or dark) is castable from each of them (lit and dark are subsets
+                # of castable), so the neighbours agree on it and could all see it
+                jb = j[b]
+                all_lit = np.full((len(jb), nb), 0xFF, np.uint8)
+                all_dark = np.full((len(jb), nb), 0xFF, np.uint8)
+                present = np.zeros(len(jb), np.int64)
+                for dr, dc in offsets:
+                    k = index[pix[jb, 0] + spacing + dr, pix[jb, 1] + spacing + dc]
+                    ok = k >= 0
+                    ok[ok] = known[k[ok]]
+                    kk = k[ok]
+                    present += ok
+                    all_lit[ok] &= lit[kk]
+                    all_dark[ok] &= dark[kk]
+                agree = all_lit | all_dark
+                agree[present < 4] = 0
+                cj = can[jb]
+                need[b] = cj & ~agree
+                np.bitwise_and(cj, agree, out=inferred[b])
+                np.bitwise_and(inferred[b], all_lit, out=inferred_lit[b])
+                return int(np.bitwise_count(inferred[b]).sum(dtype=np.int64))
+
+            stats.inferred_last = sum(_on_threads(infer, blocks, backend.threads))
             stats.inferred += stats.inferred_last
             # sample a few inferred entries for the check (re-cast below)
             if check_entries > 0:
@@ -407,12 +435,14 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
                     pr, pt, byte, bit = pr[hit][:take], pt[hit][:take], byte[hit][:take], bit[hit][:take]
                     want = ((inferred_lit[pr, byte] >> bit) & 1).astype(bool)
                     check.append((j[pr], pt, want))
-            settle(j, need, inferred_lit)
+            # each block's bookkeeping and rays on one thread: the bit work runs on both cores too
+            stats.cast += sum(_on_threads(lambda b: settle(j[b], need[b], inferred_lit[b], threads=False), blocks,
+                                          backend.threads))
         if progress:
             progress(done + 1, len(steps))
     if not known.all():  # pixels whose grid position no step reaches (cannot happen: every pixel is on the finest grid)
         j = np.flatnonzero(~known)
-        settle(j, can[j], np.zeros((len(j), nb), np.uint8))
+        stats.cast += settle(j, can[j], np.zeros((len(j), nb), np.uint8))
     if check:
         pj = np.concatenate([c[0] for c in check])
         pt = np.concatenate([c[1] for c in check])
