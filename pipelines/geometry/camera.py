@@ -263,10 +263,12 @@ def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, co
     A pixel's turn is capped at its facet's own: the largest difference of its vertex normals (a
     facet seen edge-on, or a sliver, would extrapolate its plane far beyond the facet); a
     half-pixel ray parallel to the facet's plane gives no turn along that axis."""
-    tri = mesh.faces[face]
+    # the facets' own quantities once per facet (a facet covers many pixels), then per pixel
+    facets, at = np.unique(face, return_inverse=True)
+    tri = mesh.faces[facets]
     p0, p1, p2 = (mesh.vertices[tri[:, i]] for i in range(3))
     n0, n1, n2 = (mesh.vertex_normals[tri[:, i]] for i in range(3))
-    E = np.stack([p1 - p0, p2 - p0], axis=2)  # (P, 3, 2)
+    E = np.stack([p1 - p0, p2 - p0], axis=2)  # (F, 3, 2)
     M = np.stack([n1 - n0, n2 - n0], axis=2)
     g = np.cross(E[:, :, 0], E[:, :, 1])
     area2 = np.linalg.norm(g, axis=1)
@@ -274,9 +276,12 @@ def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, co
     g = g / np.maximum(area2, 1e-300)[:, None]
     EtE = np.einsum("pki,pkj->pij", E, E)
     EtE[~ok] = np.eye(2)
-    pinv = np.linalg.solve(EtE, np.transpose(E, (0, 2, 1)))  # (P, 2, 3): barycentrics (b1, b2) per unit of point
-    bary = np.einsum("pij,pj->pi", pinv, position - p0)
-    raw = n0 + np.einsum("pij,pj->pi", M, bary)  # the interpolated normal before normalising
+    pinv = np.linalg.solve(EtE, np.transpose(E, (0, 2, 1)))  # (F, 2, 3): barycentrics (b1, b2) per unit of point
+    Mp = M @ pinv  # (F, 3, 3): the raw normal's change per unit of point
+    spread = np.max([np.linalg.norm(a - b, axis=1) for a, b in ((n0, n1), (n1, n2), (n2, n0))], axis=0)[at]
+    plane = np.einsum("pk,pk->p", p0 - pose.camera_centre, g)[at]  # the facet's plane: g . x = g . p0
+    ok, g, Mp = ok[at], g[at], Mp[at]
+    raw = n0[at] + np.einsum("pij,pj->pi", Mp, position - p0[at])  # the interpolated normal before normalising
     length = np.maximum(np.linalg.norm(raw, axis=1), 1e-12)
     unit = raw / length[:, None]
     out = np.zeros((len(face), 3, 2), np.float64)
@@ -286,17 +291,15 @@ def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, co
         for sgn in (-1.0, 1.0):
             _, d = pixel_rays(camera, pose, rows + sgn * dr, cols + sgn * dc)
             den = np.einsum("pk,pk->p", d, g)
-            num = np.einsum("pk,pk->p", p0 - o, g)
             front = np.abs(den) > 1e-9
-            s = num / np.where(front, den, 1.0)
+            s = plane / np.where(front, den, 1.0)
             hit &= front & (s > 0)
             ends.append(o + s[:, None] * d)
         dx = ends[1] - ends[0]  # the surface point's move across the pixel, on the facet's plane
-        dn = np.einsum("pij,pjk,pk->pi", M, pinv, dx)  # of the raw normal
+        dn = np.einsum("pij,pj->pi", Mp, dx)  # of the raw normal
         dn -= np.einsum("pk,pk->p", dn, unit)[:, None] * unit  # of the unit normal
         out[:, :, k] = np.where(hit[:, None], dn / length[:, None], 0.0)
     out[~ok] = 0.0
-    spread = np.max([np.linalg.norm(a - b, axis=1) for a, b in ((n0, n1), (n1, n2), (n2, n0))], axis=0)
     turn = np.linalg.norm(out, axis=1)  # (P, 2)
     out *= (np.minimum(turn, spread[:, None]) / np.maximum(turn, 1e-300))[:, None, :]
     return np.nan_to_num(out).astype(np.float32)
