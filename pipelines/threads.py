@@ -10,6 +10,7 @@ threadpoolctl finds every BLAS the process has loaded (numpy's and scipy's OpenB
 from __future__ import annotations
 
 import contextlib
+import threading
 from functools import lru_cache
 
 
@@ -55,20 +56,33 @@ def blas_threads(n: int):
         yield
 
 
+_worker = threading.local()  # .inside: this thread is one of parallel_blocks' workers
+
+
+def _as_worker(run, starts):
+    _worker.inside = True
+    try:
+        run(starts)
+    finally:
+        _worker.inside = False
+
+
 def parallel_blocks(run, starts: list) -> None:
     """Blocked array work on the machine's cores (at most 2): `run(starts[i::k])` on thread i of k,
     with one BLAS thread each (the products in a block are small). numpy's ufuncs and BLAS release
-    the GIL, so the threads run in parallel; each `run` keeps its own scratch arrays."""
+    the GIL, so the threads run in parallel; each `run` keeps its own scratch arrays. Called from
+    one of its own workers (a blocked kernel inside a blocked loop), it runs `run(starts)` on that
+    thread: the cores are already busy."""
     import os
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     workers = min(2, cores, len(starts))
     if workers == 0:
         return
-    if workers == 1:
+    if workers == 1 or getattr(_worker, "inside", False):
         run(starts)
         return
     from concurrent.futures import ThreadPoolExecutor
 
     with blas_threads(1), ThreadPoolExecutor(workers) as pool:
-        list(pool.map(run, [starts[i::workers] for i in range(workers)]))
+        list(pool.map(_as_worker, [run] * workers, [starts[i::workers] for i in range(workers)]))

@@ -149,9 +149,9 @@ class VisibilityData:
             sl = slice(a, min(n, a + rows))
             yield sl, decode(np.asarray(self.stored[sl]), self.cube.n_texels, self.encoding, raw)
 
-    def block(self, rows: slice) -> np.ndarray:
-        """(p, N) float32 V of a slice of pixel rows."""
-        return decode(np.asarray(self.stored[rows]), self.cube.n_texels, self.encoding)
+    def block(self, rows: slice, raw: bool = False) -> np.ndarray:
+        """(p, N) float32 V of a slice of pixel rows; `raw` as in `blocks`."""
+        return decode(np.asarray(self.stored[rows]), self.cube.n_texels, self.encoding, raw)
 
     def dense(self) -> np.ndarray:
         """(P, N) float32 V (small scenes and tests only)."""

@@ -275,7 +275,7 @@ def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cu
     return out
 
 
-def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 1024,
+def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int = 512,
            albedo: np.ndarray | None = None, specular: np.ndarray | None = None) -> np.ndarray:
     """Radiance of every used pixel under `light` ((N,) or (N, 3) texel radiances) -> (P, 3).
 
@@ -290,16 +290,23 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
         raise ValueError(f"light must have shape ({vis.cube.n_texels}, 3), got {np.shape(light)}")
     kd = np.asarray(material.kd)
     ks = np.asarray(material.ks)
-    out = np.zeros((vis.n_pixels, 3))
+    P = vis.n_pixels
+    out = np.zeros((P, 3))
     Lf = L.astype(np.float32)
     s = vis.samples
-    for sl, V in vis.blocks(rows, raw=True):
-        D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material, None if specular is None else specular[sl],
-                         mf.samples_footprint(s, sl, material))
-        out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
-        if S is not None:
-            out[sl] += ks * (S @ Lf)
-        D = S = V = None  # (a block's transport goes before the next one's is built: memory)
+
+    def run(starts):  # a block of rows on each core, decoded, formed and multiplied there
+        for a in starts:
+            sl = slice(a, min(P, a + rows))
+            V = vis.block(sl, raw=True)
+            D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material,
+                             None if specular is None else specular[sl], mf.samples_footprint(s, sl, material))
+            out[sl] = (kd if albedo is None else kd * albedo[sl]) * (D @ Lf)
+            if S is not None:
+                out[sl] += ks * (S @ Lf)
+            D = S = V = None  # (a block's transport goes before the next one's is built: memory)
+
+    parallel_blocks(run, list(range(0, P, rows)))
     return out
 
 
