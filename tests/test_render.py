@@ -157,6 +157,35 @@ def test_render_matches_the_sum_with_stored_visibility_bits(seed):
     np.testing.assert_allclose(out, expected, rtol=1e-4)
 
 
+@pytest.mark.parametrize("model", ["lambert", "blinn-phong", "plastic"])
+def test_render_in_blocks_on_both_cores_equals_one_block(model):
+    """Blocks of rows formed on two threads (each its own transport) give what one block gives,
+    per-pixel albedo and matte / scaled specular rows included."""
+    rng = np.random.default_rng(3)
+    cube = CubeMap(8)
+    P = 41
+    normals = unit(rng.normal(size=(P, 3)) + [0, 0, 1.5])
+    views = unit(rng.normal(size=(P, 3)) * 0.3 + [0, 0, 1.0])
+    V = rng.random((P, cube.n_texels)) < 0.7
+    L = rng.random((cube.n_texels, 3)) * 3.0
+    vis = make_vis(make_samples(normals, views), cube, V)
+    m = Material(kd=(0.8, 0.6, 0.4), ks=(0.3, 0.3, 0.3), shininess=25.0, model=model, roughness=0.2)
+    if model == "lambert":
+        m = Material(kd=(0.8, 0.6, 0.4))
+    albedo = rng.random((P, 3)) + 0.5
+    specular = rng.choice([0.0, 1.0, 0.5], size=P)
+    whole = render(vis, L, m, rows=P, albedo=albedo, specular=specular)
+    blocks = render(vis, L, m, rows=5, albedo=albedo, specular=specular)
+    assert np.abs(whole).max() > 0.1
+    np.testing.assert_allclose(blocks, whole, rtol=1e-6, atol=1e-9)
+    if model != "lambert":  # the matte rows were rendered without the lobe (and a plastic's coating)
+        lobe_everywhere = render(vis, L, m, rows=5, albedo=albedo)
+        matte = specular == 0
+        assert np.abs(lobe_everywhere[matte] - blocks[matte]).min() > 1e-4
+        if model == "blinn-phong":  # (a lobe only adds light; a coating also takes some off the base)
+            assert (lobe_everywhere[matte] > blocks[matte]).all()
+
+
 def test_half_visible_sky_halves_the_light():
     cube = CubeMap(32)
     d = cube.directions
