@@ -23,3 +23,21 @@ def test_adaptive_visibility_matches_every_ray_cast(mitsuba_scene, supersample):
     wrong = int(np.count_nonzero(np.abs(a - b) > 1e-6))
     assert wrong <= 2e-3 * castable
     assert stats.wrong <= max(5, 5 * stats.checked * wrong / max(stats.inferred, 1) + 5)
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_adaptive_visibility_is_the_same_on_one_thread_and_in_small_blocks(mitsuba_scene, monkeypatch, supersample):
+    """A refinement step's pixels go in blocks on two threads: the bits and the statistics (the
+    check's random sample included) do not depend on the threads or the block size."""
+    from pipelines.geometry import raycast
+    from pipelines.geometry import visibility as gv
+
+    scene = mitsuba_scene("bunny_sun")
+    cube = CubeMap(8)
+    stored, stats = coherent_visibility(scene.backend, scene.samples, cube, supersample)
+    one = raycast.make_backend(scene.mesh, threads=1)
+    monkeypatch.setattr(gv, "STEP_PIXELS", 64)
+    stored1, stats1 = coherent_visibility(one, scene.samples, cube, supersample)
+    assert np.array_equal(stored, stored1)
+    assert stats.as_dict() == stats1.as_dict()
+    assert stats.checked > 1000 and stats.inferred > stats.cast  # (the check and the inference ran)

@@ -294,6 +294,12 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     out = np.zeros((P, 3))
     Lf = L.astype(np.float32)
     s = vis.samples
+    # an even number of equal blocks of at most `rows`: both cores get the same share (a few pixels,
+    # under 64 a block, go in one)
+    asked = max(1, rows)
+    rows = max(1, -(-P // (2 * -(-P // (2 * asked)))))
+    if rows < min(64, asked):
+        rows = asked
 
     def run(starts):  # a block of rows on each core, decoded, formed and multiplied there
         for a in starts:
