@@ -186,6 +186,14 @@ def test_render_in_blocks_on_both_cores_equals_one_block(model):
             assert (lobe_everywhere[matte] > blocks[matte]).all()
 
 
+def test_render_of_no_pixels_is_empty():
+    cube = CubeMap(8)
+    empty = make_vis(make_samples(np.zeros((0, 3))), cube)
+    assert empty.n_pixels == 0
+    out = render(empty, np.ones(cube.n_texels), Material(kd=(0.5, 0.5, 0.5)))
+    assert out.shape == (0, 3)
+
+
 def test_half_visible_sky_halves_the_light():
     cube = CubeMap(32)
     d = cube.directions

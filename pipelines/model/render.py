@@ -297,7 +297,7 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     # an even number of equal blocks of at most `rows`: both cores get the same share (a few pixels,
     # under 64 a block, go in one)
     asked = max(1, rows)
-    rows = max(1, -(-P // (2 * -(-P // (2 * asked)))))
+    rows = max(1, -(-P // (2 * max(1, -(-P // (2 * asked))))))
     if rows < min(64, asked):
         rows = asked
 
