@@ -176,44 +176,26 @@ def find_mesh(scene_dir: Path) -> Path:
 
 
 def load_mesh(path: str | Path) -> Mesh:
-    """Load a mesh with trimesh; a multi-part file (scene) becomes one mesh.
+    """Load a mesh (a plain one directly, `plain_mesh`, else with trimesh); a multi-part file
+    (scene) becomes one mesh.
 
     Vertex normals from the file are kept as shading normals (else area-weighted face normals).
     Degenerate (zero-area) and duplicate faces are removed, and OBJ polygons split into triangles,
     with a note each.
     """
-    import trimesh
+    from .plain_mesh import read_plain
 
     path = Path(path)
     require_file(path, "check the mesh path")
-    try:
-        loaded = trimesh.load(str(path), process=False)
-    except Exception as exc:  # trimesh raises many types for malformed files
-        # an ImportError here is trimesh reaching for an optional text-encoding detector on binary junk
-        msg = ("unrecognised content" if isinstance(exc, ImportError) or not str(exc)
-               else str(exc).splitlines()[0])
-        raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
-    # A scene (multi-part file) becomes one mesh; each part keeps the normals its file gives
-    # (trimesh's force="mesh" would drop them and recompute normals from the faces).
-    parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
-        [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
-    parts = [m for m in parts if len(m.faces)]
-    if not parts:
-        raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")
-    vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64) for m in parts])
-    offsets = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
-    faces = np.concatenate([np.asarray(m.faces, dtype=np.int64) + o for m, o in zip(parts, offsets)])
-    if not np.all(np.isfinite(vertices)):
-        raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
-                         f" of {len(vertices)}", path, "repair or re-export the mesh")
-    normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
-    # a PLY with UVs but no `comment TextureFile` gets a grey placeholder image from trimesh: not a texture
-    images = path.suffix.lower() != ".ply" or _ply_names_texture(path)
-    names, face_part, face_uv, face_colour, materials = _file_parts(parts, faces, images)
+    plain = read_plain(path)
+    if plain is None:
+        vertices, faces, normals, (names, face_part, face_uv, face_colour, materials) = _trimesh_load(path)
+    else:  # (no parts, UVs or colours: one uniform part)
+        (vertices, faces, normals), names, face_part, face_uv, face_colour, materials = plain, (), None, None, None, ()
+        if not np.all(np.isfinite(vertices)):
+            raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
     notes = []
-    if path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
+    if plain is None and path.suffix.lower() == ".obj":  # the loader splits polygons into triangles silently: say so
         with open(path, "rb") as f:
             polygons = sum(1 for line in f if line.startswith(b"f ") and len(line.split()) > 4)
         if polygons:
@@ -239,6 +221,8 @@ def load_mesh(path: str | Path) -> Mesh:
         face_colour = None if face_colour is None else face_colour[~drop]
     bad_n = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
     if bad_n.any():
+        import trimesh
+
         normals = np.array(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, dtype=np.float64)
         flat = ~np.all(np.isfinite(normals), axis=1) | (np.linalg.norm(normals, axis=1) < 0.5)
         if flat.any():  # faces around the vertex cancel (a sheet folded onto itself): take one face's normal
@@ -249,6 +233,38 @@ def load_mesh(path: str | Path) -> Mesh:
             normals[flat] = np.where(first[flat, None] >= 0, fn[first[flat]], [0.0, 0.0, 1.0])
     normals = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
     return Mesh(vertices, faces, normals, tuple(notes), names, face_part, face_uv, face_colour, materials)
+
+
+def _trimesh_load(path: Path):
+    """(vertices, faces, vertex normals, `_file_parts`) of any mesh file trimesh reads."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        # an ImportError here is trimesh reaching for an optional text-encoding detector on binary junk
+        msg = ("unrecognised content" if isinstance(exc, ImportError) or not str(exc)
+               else str(exc).splitlines()[0])
+        raise InputError(f"cannot read mesh ({msg})", path, "re-export it as OBJ, PLY, GLB or STL") from None
+    # A scene (multi-part file) becomes one mesh; each part keeps the normals its file gives
+    # (trimesh's force="mesh" would drop them and recompute normals from the faces).
+    parts = [loaded] if isinstance(loaded, trimesh.Trimesh) else (
+        [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if isinstance(loaded, trimesh.Scene) else [])
+    parts = [m for m in parts if len(m.faces)]
+    if not parts:
+        raise InputError("mesh has no triangles", path, "export the geometry as a triangle mesh")
+    vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64) for m in parts])
+    offsets = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
+    faces = np.concatenate([np.asarray(m.faces, dtype=np.int64) + o for m, o in zip(parts, offsets)])
+    if not np.all(np.isfinite(vertices)):
+        raise InputError("mesh has NaN or infinite vertex coordinates", path, "repair the mesh")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"a face refers to vertex {int(faces.max() if faces.max() >= len(vertices) else faces.min())}"
+                         f" of {len(vertices)}", path, "repair or re-export the mesh")
+    normals = np.concatenate([np.asarray(m.vertex_normals, dtype=np.float64) for m in parts])
+    # a PLY with UVs but no `comment TextureFile` gets a grey placeholder image from trimesh: not a texture
+    images = path.suffix.lower() != ".ply" or _ply_names_texture(path)
+    return vertices, faces, normals, _file_parts(parts, faces, images)
 
 
 def _file_parts(parts: list, faces: np.ndarray, images: bool = True):
