@@ -193,7 +193,7 @@ def other_view(scene: SceneFiles, pose: Path, camera: Path | None = None) -> Vie
     return View(camera, pose, None, f"view-{digest}")
 
 
-_LOADED: dict = {}  # the mesh read last (by path, size and mtime) and its ray casters
+_LOADED: dict = {}  # the mesh read last (by path, size and mtime), its ray casters and the views' centre-ray hits
 
 
 def scene_mesh(path: Path):
@@ -225,14 +225,32 @@ def scene_backend(mesh, name: str = "embree"):
     return kept[name]
 
 
+def keep_hits(camera, pose, backend, hits) -> None:
+    """Remember the (H, W) centre-ray hits that the visibility stage cast for this camera, pose and
+    ray caster (of the kept mesh), for `mesh_coverage` later in this process."""
+    if _LOADED.get("backends") and any(b is backend for b in _LOADED["backends"].values()):
+        kept = [k for k in _LOADED.setdefault("hits", []) if not (k[0] is backend and k[1] == camera and _same_pose(
+            k[2], pose))]
+        _LOADED["hits"] = kept[-7:] + [(backend, camera, pose, hits)]
+
+
+def _same_pose(a, b) -> bool:
+    import numpy as np
+
+    return np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+
+
 def mesh_coverage(view: View, camera, backend):
     """(H, W) bool: the pixels of `view` whose centre ray hits the mesh and that its mask keeps
-    (what a render covers when no edge margin is left out; `outputs.view_image` fills that margin)."""
+    (what a render covers when no edge margin is left out; `outputs.view_image` fills that margin).
+    The hits the visibility stage cast in this process are not cast again (`keep_hits`)."""
     from pipelines.geometry.camera import mesh_hits
     from pipelines.io import images
     from pipelines.io.scene_files import read_pose
 
-    cover = mesh_hits(camera, read_pose(view.pose), backend)
+    pose = read_pose(view.pose)
+    kept = [h for b, c, p, h in _LOADED.get("hits", []) if b is backend and c == camera and _same_pose(p, pose)]
+    cover = kept[-1].copy() if kept else mesh_hits(camera, pose, backend)
     if view.mask is not None:
         mask = images.read_mask(view.mask)
         if mask.shape == cover.shape:

@@ -58,20 +58,22 @@ class VisibilityOptions:
         return "-".join(parts)
 
 
-def used_pixels(camera, pose, mesh, mask, options: VisibilityOptions, pose_path=None, mask_path=None, backend=None):
+def used_pixels(camera, pose, mesh, mask, options: VisibilityOptions, pose_path=None, mask_path=None, backend=None,
+                with_hits: bool = False):
     """The used pixels' surface samples: (samples, diagnostics, the ray caster: `backend`, or one
-    built for the mesh)."""
+    built for the mesh), and with `with_hits` the (H, W) centre-ray hits (`pixel_samples`)."""
     from ..geometry import camera as cam
     from ..geometry import raycast
 
     backend = raycast.make_backend(mesh, options.backend) if backend is None else backend
     try:
-        samples, diag = cam.pixel_samples(camera, pose, mesh, backend, mask, options.edge_margin, mask_path=mask_path)
+        found = cam.pixel_samples(camera, pose, mesh, backend, mask, options.edge_margin, mask_path=mask_path,
+                                  with_hits=with_hits)
     except InputError as exc:
         if exc.path is None:  # geometric problem: blame the pose
             raise InputError(exc.problem, pose_path, exc.fix) from None
         raise
-    return samples, diag, backend
+    return (*found[:2], backend, *found[2:])
 
 
 def adaptive_visibility(backend, samples, cube, options: VisibilityOptions, progress=None):

@@ -198,10 +198,11 @@ def mesh_hits(camera: Camera, pose: Pose, backend) -> np.ndarray:
 
 
 def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndarray | None = None,
-                  edge_margin: int = 1, mask_path=None) -> tuple[PixelSamples, dict]:
+                  edge_margin: int = 1, mask_path=None, with_hits: bool = False):
     """Cast one ray per pixel centre and keep the used pixels.
 
-    Returns the samples and diagnostics (pixel counts at each step).
+    Returns the samples and diagnostics (pixel counts at each step), and with `with_hits` also
+    the (H, W) mask of the pixels whose centre ray hits the mesh (`mesh_hits`'s).
     """
     from scipy import ndimage
 
@@ -245,7 +246,7 @@ def pixel_samples(camera: Camera, pose: Pose, mesh: Mesh, backend, mask: np.ndar
     jac = normal_jacobian(camera, pose, mesh, rows[sel], cols[sel], f, position)
     samples = PixelSamples(pixel=np.column_stack([rows[sel], cols[sel]]).astype(np.int32), position=position,
                            normal=normal, geometric_normal=geo, view=view, face=f, normal_jacobian=jac)
-    return samples, diagnostics
+    return (samples, diagnostics, hit) if with_hits else (samples, diagnostics)
 
 
 def normal_jacobian(camera: Camera, pose: Pose, mesh: Mesh, rows: np.ndarray, cols: np.ndarray, face: np.ndarray,

@@ -24,7 +24,7 @@ from ..outputs import (jsonable, read_rgba, view_png, write_cross_heat_png, writ
                        write_robust_weights, write_view)
 from ..scene import (MAIN_VIEW, SceneFiles, load_photo, load_view_photo, mesh_coverage, require, scene_backend,
                      scene_mesh, scene_views)
-from .visibility import visibility_stage
+from .visibility import read_kept, visibility_stage
 
 VERSION = 15  # 4: the sampled route; reflectance rounds compare their own held-out errors; 5: relit.exr has
 #   alpha, relit.png the photo where nothing was rendered and the photo's exposure; 6: levels chosen again
@@ -124,7 +124,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
 
         def work(d) -> Ran:
             t0 = time.monotonic()
-            datas = [visibility_file.read_visibility(r.path) for r in vis_runs]
+            datas = [read_kept(r.path) for r in vis_runs]
             data, layout = mv.combine(datas, [v.label for v in views], [(c.height, c.width) for c in cameras])
             stacked = mv.stacked_photo([ph for _, ph in photos], layout)
             held, holdout = mv.holdout(layout, opts.held_out, MAIN_VIEW)

@@ -26,6 +26,7 @@ from ..scene import SceneFiles, View, photo_view, require
 VERSION = 5  # 5: each pixel's normal Jacobian (the normal's turn across the pixel: a glossy lobe's footprint widening); 4: hit points located in float64 on the hit face, shadow offset from float32 precision (issue 17)
 KEEP = 4  # visibility results kept per view
 CHUNK_PIXELS = 1024  # rows per resumable chunk of the exact method
+KEEP_IN_MEMORY = 8  # adaptive results kept in memory for a solve in the same process (`read_kept`)
 
 
 @dataclass(frozen=True)
@@ -54,20 +55,42 @@ def inputs_of(scene: SceneFiles, view: View) -> dict:
     return {"camera.json": view.camera, "pose.json": view.pose, mesh.name: mesh, "mask.png": view.mask}
 
 
+_KEPT: dict = {}  # visibility file -> (its size, mtime and inode when written, the data written to it)
+
+
+def read_kept(path: Path):
+    """`read_visibility(path)`, or the data the visibility stage of this process has just written
+    there (once: the reader takes it over), while the file is the one it wrote."""
+    from pipelines.io import visibility_file
+
+    sig, data = _KEPT.pop(str(path), (None, None))
+    return data if sig is not None and sig == _signature(path) else visibility_file.read_visibility(path)
+
+
+def _signature(path: Path):
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns, st.st_ino
+
+
 def load_samples(scene: SceneFiles, opts: VisibilityOptions, view: View):
-    """(camera, mesh, ray caster, used-pixel samples, diagnostics) of a view."""
+    """(camera, mesh, ray caster, used-pixel samples, diagnostics) of a view (its centre-ray hits
+    kept for `mesh_coverage`)."""
     from pipelines.controllers.visibility import used_pixels
     from pipelines.io import images
     from pipelines.io.scene_files import read_camera, read_pose
 
-    from ..scene import scene_backend, scene_mesh
+    from ..scene import keep_hits, scene_backend, scene_mesh
 
     camera = read_camera(view.camera)
     pose = read_pose(view.pose)
     mesh = scene_mesh(scene.mesh)
     mask = images.read_mask(view.mask) if view.mask else None
-    samples, diag, backend = used_pixels(camera, pose, mesh, mask, opts, view.pose, view.mask,
-                                         scene_backend(mesh, opts.backend))
+    samples, diag, backend, hits = used_pixels(camera, pose, mesh, mask, opts, view.pose, view.mask,
+                                               scene_backend(mesh, opts.backend), with_hits=True)
+    keep_hits(camera, pose, backend, hits)
     return camera, mesh, backend, samples, diag
 
 
@@ -103,11 +126,21 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
                            "base_spacing_px": summary.get("base_spacing_px", 1)}
             visibility_file.write_visibility(out, samples, cube, opts.supersample, chunks, rows_per_chunk,
                                              attrs=with_record)
+            if opts.method == "adaptive":  # (its rows are in memory: the solve in this process takes them)
+                from pipelines.geometry.visibility import VisibilityData
+
+                _KEPT.pop(str(out), None)
+                while len(_KEPT) >= KEEP_IN_MEMORY:  # (a process that casts and never solves: the oldest go)
+                    _KEPT.pop(next(iter(_KEPT)))
+                _KEPT[str(out)] = (None, VisibilityData(_as_read(samples), cube, opts.supersample,
+                                                                   np.ascontiguousarray(stored), opts.method))
             summary = {**diag, "texels": cube.n_texels, **summary, "seconds_casting": time.monotonic() - t0}
             console.result(_result_line(name, summary, cache.relative(out)))
             return Ran([out], summary)
 
         d = run_stage(cache, stage, console, force, work)
+        if str(out) in _KEPT and _KEPT[str(out)][0] is None:  # (the file is in place once the stage is done)
+            _KEPT[str(out)] = (_signature(out), _KEPT[str(out)][1])
         if d.run:
             partial = cache.dir / "partial"
             shutil.rmtree(partial / f"{view.name}-{opts.slot}-{d.key[:16]}", ignore_errors=True)
@@ -115,6 +148,14 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
                 partial.rmdir()
             _prune(cache, view)
     return VisibilityResult(d, out, name)
+
+
+def _as_read(samples):
+    """The samples as `read_visibility` gives them back (C-ordered arrays; the fields the file has)."""
+    from dataclasses import replace
+
+    return replace(samples, **{n: np.ascontiguousarray(getattr(samples, n)) for n in samples.FIELDS
+                               if getattr(samples, n) is not None})
 
 
 def _result_line(name: str, summary: dict, rel: str) -> str:
