@@ -41,3 +41,23 @@ def test_adaptive_visibility_is_the_same_on_one_thread_and_in_small_blocks(mitsu
     assert np.array_equal(stored, stored1)
     assert stats.as_dict() == stats1.as_dict()
     assert stats.checked > 1000 and stats.inferred > stats.cast  # (the check and the inference ran)
+
+
+def test_castable_bits_are_the_packed_castable_mask():
+    """`castable_bits` (blocks on two threads, one comparison of the smaller dot product) packs
+    exactly `castable`: random normals, a NaN, a zero normal, sizes off the block and the byte."""
+    from pipelines.geometry.visibility import castable, castable_bits
+
+    rng = np.random.default_rng(3)
+    for P, N in ((1, 5), (700, 3 * 8 * 8 + 3), (1029, 3072)):
+        n = rng.normal(size=(P, 3))
+        g = n + 0.5 * rng.normal(size=(P, 3))
+        d = rng.normal(size=(N, 3))
+        n[0, 1] = np.nan
+        if P > 2:
+            g[1] = 0.0
+        bits = castable_bits(n, g, d)
+        assert bits.shape == (P, (N + 7) // 8)
+        np.testing.assert_array_equal(bits, np.packbits(castable(n, g, d), axis=1, bitorder="little"))
+        if P > 2:
+            assert np.unpackbits(bits[2:], axis=1, count=N, bitorder="little").mean() > 0.2
