@@ -156,3 +156,24 @@ def test_visibility_change_counts_differing_texels():
     assert change[4] == 4 * 4  # differs from each of its 4 neighbours by 4 bits
     assert change[1] == change[3] == change[5] == change[7] == 4  # the edge pixels touch the centre once
     assert change[0] == change[2] == change[6] == change[8] == 0
+
+
+def test_visibility_change_matches_a_pixel_by_pixel_count():
+    """Against the definition, pixel by pixel (each of its 4 neighbours compared), on a 150 x 120
+    image with holes (more pairs than one block: both threads), bit-packed and fraction rows."""
+    rng = np.random.default_rng(5)
+    keep = rng.random((150, 120)) > 0.2
+    pixels = np.argwhere(keep)
+    at = {tuple(p): i for i, p in enumerate(pixels)}
+    for encoding, width in (("bits", 7), ("fraction", 12)):
+        stored = rng.integers(0, 256 if encoding == "bits" else 3, size=(len(pixels), width)).astype(np.uint8)
+        want = np.zeros(len(pixels), np.int64)
+        for i, (r, c) in enumerate(pixels):
+            for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+                j = at.get((r + dr, c + dc))
+                if j is not None:
+                    want[i] += (np.unpackbits(stored[i] ^ stored[j]).sum() if encoding == "bits"
+                                else (stored[i] != stored[j]).sum())
+        got = sampling.visibility_change(pixels, stored, encoding)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
