@@ -75,3 +75,16 @@ def test_kept_hits_are_the_cast_ones(tmp_path):
     np.testing.assert_array_equal(kept, cast)  # (the sample has no mask.png)
     sc._LOADED.pop("hits")
     np.testing.assert_array_equal(sc.mesh_coverage(view, camera, backend), cast)
+
+
+def test_render_takes_the_visibility_it_just_cast_and_gets_the_same_image(tmp_path, monkeypatch):
+    from cli_helpers import render_args
+
+    scene = copy_sample(tmp_path / "scene")
+    reads = _counting_reads(monkeypatch)
+    ok(invoke(scene, *render_args(scene)))
+    assert reads == []
+    first = (scene / "out" / "render.exr").read_bytes()
+    ok(invoke(scene, *render_args(scene), "--force"))
+    assert [str(p) for p in reads] == [str(vis_file(scene))]
+    assert (scene / "out" / "render.exr").read_bytes() == first

@@ -16,7 +16,7 @@ from ..console import Console
 from ..outputs import photo_exposure, write_heat_png, write_json
 from ..scene import (SceneFiles, load_view_photo, material_from_options, photo_view, require, scene_albedo,
                      solved_light, view_gain, view_named)
-from .visibility import visibility_stage
+from .visibility import read_kept, visibility_stage
 
 VERSION = 6  # 6: a named view at its own exposure (solve --view-exposure); 5: --view NAME (one of the scene's photos); 4: the scene's parts and textures (reflectance.json's parts); 3: NAME_shadow.png records its scale; NAME.png at the photo's exposure
 SHADOW_WHITE = 0.5  # NAME_shadow.png: white = 50 % darker
@@ -58,7 +58,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
                  force: bool = False, lock_wait: float = 600.0, visibility: str = "adaptive"):
     from pipelines.geometry import mesh as meshes
     from pipelines.geometry import raycast
-    from pipelines.io import images, visibility_file
+    from pipelines.io import images
     from pipelines.io.scene_files import load_mesh, read_camera, read_pose
     from pipelines.light import cubemap
     from pipelines.model import insert as ins
@@ -117,7 +117,7 @@ def insert_stage(scene: SceneFiles, opts: InsertOptions, material, material_path
             if (obj.vertices @ pose.R[2] + pose.t[2]).max() <= 0:
                 raise InputError("the object is behind the camera", None, "place it in front of the camera with --at")
             console.say(f"insert: {len(obj.faces)} object faces at {tuple(opts.at)}, R = {cube.resolution}")
-            scene_vis = visibility_file.read_visibility(vis.path)
+            scene_vis = read_kept(vis.path)
             task = console.task("insert", "casting", 1, "pixel blocks")
 
             def progress(done, total):

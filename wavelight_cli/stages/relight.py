@@ -16,8 +16,8 @@ from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_json, write_residual, write_view
 from ..scene import (SceneFiles, View, load_view_photo, mesh_coverage, other_view, photo_view, require,
-                     scene_albedo, scene_views, solved_light, view_gain, view_named)
-from .visibility import visibility_stage
+                     scene_albedo, scene_backend, scene_mesh, scene_views, solved_light, view_gain, view_named)
+from .visibility import read_kept, visibility_stage
 
 VERSION = 8  # 8: a named view at its own exposure (solve --view-exposure); 7: --view NAME (a view of the scene's: its photo behind and compared); 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: each part's material and texture (reflectance.json's parts); 3: NAME.exr has alpha; NAME.png at the photo's exposure, the photo (or transparency) where nothing was rendered
 
@@ -93,9 +93,8 @@ def relight_view(scene: SceneFiles, opts: RelightOptions) -> View:
 def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightOptions, material, material_path,
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     from pipelines.controllers.render import render_view
-    from pipelines.geometry import raycast
-    from pipelines.io import images, visibility_file
-    from pipelines.io.scene_files import load_mesh, read_camera, read_pose
+    from pipelines.io import images
+    from pipelines.io.scene_files import read_camera, read_pose
     from pipelines.metrics import versus_photo
     from pipelines.model.parts import parts_files
 
@@ -149,10 +148,10 @@ def relight_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: RelightO
                     if mask.shape != (camera.height, camera.width):
                         raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, the view is "
                                          f"{camera.width}x{camera.height}", mask_path, "use a mask of the view's size")
-            data = visibility_file.read_visibility(vis.path)
+            data = read_kept(vis.path)
             light, source = _light(scene, opts, data.cube)
-            mesh = load_mesh(scene.mesh)
-            backend = raycast.make_backend(mesh, vis_opts.backend)
+            mesh = scene_mesh(scene.mesh)
+            backend = scene_backend(mesh, vis_opts.backend)
             values, _ = render_view(data, light, material, backend,
                                     scene_albedo(scene, material_path, mesh, camera, read_pose(view.pose)))
             gain = view_gain(scene, view) if opts.light is None else 1.0

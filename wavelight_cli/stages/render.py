@@ -10,8 +10,8 @@ from pipelines.controllers.visibility import VisibilityOptions
 from ..cache import Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..outputs import read_rgba, view_png, write_light, write_residual, write_view
-from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view, require
-from .visibility import visibility_stage
+from ..scene import SceneFiles, load_photo, mesh_coverage, photo_view, require, scene_backend, scene_mesh
+from .visibility import read_kept, visibility_stage
 
 VERSION = 6  # 5, 6: the bright directions' neighbouring texels cast too (5), no longer (6); 4: render.exr has alpha, render.png the photo where nothing was rendered
 
@@ -19,9 +19,8 @@ VERSION = 6  # 5, 6: the bright directions' neighbouring texels cast too (5), no
 def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Path, material, exposure: float | None,
                  console: Console, force: bool = False, lock_wait: float = 600.0):
     from pipelines.controllers.render import render_view
-    from pipelines.geometry import raycast
-    from pipelines.io import images, visibility_file
-    from pipelines.io.scene_files import load_mesh, read_camera
+    from pipelines.io import images
+    from pipelines.io.scene_files import read_camera
     from pipelines.light import cubemap
     from pipelines.metrics import versus_photo
 
@@ -37,9 +36,9 @@ def render_stage(scene: SceneFiles, vis_opts: VisibilityOptions, light_path: Pat
                       {vis.stage: vis.key}, {"exposure": exposure})
 
         def work(d) -> Ran:
-            data = visibility_file.read_visibility(vis.path)
+            data = read_kept(vis.path)
             light = cubemap.latlong_to_cube(env, data.cube)
-            backend = raycast.make_backend(load_mesh(scene.mesh), vis_opts.backend)
+            backend = scene_backend(scene_mesh(scene.mesh), vis_opts.backend)
             values, _ = render_view(data, light, material, backend)
             outputs = write_view(out, "render", values, data.samples.pixel, (camera.height, camera.width),
                                  None if photo is None else photo.pixels, exposure,

@@ -88,7 +88,7 @@ def solve_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOptio
     comma-separated subset of the views, default all); see the module docstring for the outputs."""
     from pipelines.controllers import solve as ctl
     from pipelines.controllers import views as mv
-    from pipelines.io import light_file, visibility_file
+    from pipelines.io import light_file
     from pipelines.io.scene_files import read_camera
     from pipelines.model.parts import PartsOptions, parts_files
 
@@ -330,7 +330,6 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
                   console: Console, force: bool = False, lock_wait: float = 600.0):
     """Every basis on one scene at one resolution -> out/compare.json, compare.md, compare.png, ..."""
     from pipelines.controllers.compare import COLUMNS, compare_scene
-    from pipelines.io import visibility_file
 
     vis_opts, camera, photo_path, photo = _inputs(scene, vis_opts, opts)
     cache = SceneCache(scene.root)
@@ -345,7 +344,7 @@ def compare_stage(scene: SceneFiles, vis_opts: VisibilityOptions, opts: SolveOpt
         stage = Stage("compare", COMPARE_VERSION, params, {"photo": photo_path}, {vis.stage: vis.key})
 
         def work(d) -> Ran:
-            data = visibility_file.read_visibility(vis.path)
+            data = read_kept(vis.path)
             backend = scene_backend(scene_mesh(scene.mesh), vis_opts.backend) if data.method == "adaptive" else None
             result = compare_scene(data, photo, material, opts, photo_path, ConsoleProgress(console, "compare"),
                                    backend, adaptive=data.method == "adaptive")

@@ -133,14 +133,15 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
                 while len(_KEPT) >= KEEP_IN_MEMORY:  # (a process that casts and never solves: the oldest go)
                     _KEPT.pop(next(iter(_KEPT)))
                 _KEPT[str(out)] = (None, VisibilityData(_as_read(samples), cube, opts.supersample,
-                                                                   np.ascontiguousarray(stored), opts.method))
+                                                        np.ascontiguousarray(stored), opts.method))
             summary = {**diag, "texels": cube.n_texels, **summary, "seconds_casting": time.monotonic() - t0}
             console.result(_result_line(name, summary, cache.relative(out)))
             return Ran([out], summary)
 
         d = run_stage(cache, stage, console, force, work)
-        if str(out) in _KEPT and _KEPT[str(out)][0] is None:  # (the file is in place once the stage is done)
-            _KEPT[str(out)] = (_signature(out), _KEPT[str(out)][1])
+        kept = _KEPT.pop(str(out), None)
+        if d.run and kept is not None and kept[0] is None:  # (the file is in place once the stage is done)
+            _KEPT[str(out)] = (_signature(out), kept[1])
         if d.run:
             partial = cache.dir / "partial"
             shutil.rmtree(partial / f"{view.name}-{opts.slot}-{d.key[:16]}", ignore_errors=True)
