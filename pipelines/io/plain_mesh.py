@@ -3,7 +3,7 @@
 Importing trimesh costs ~0.7 s, a tenth of a whole `solve` on a 320x240 scene. Most scene meshes
 are plain: a binary PLY with `x y z nx ny nz` and a triangle list, or an OBJ with only `v`, `vn`
 and `f a//a` lines. `read_plain` reads exactly those, giving the arrays trimesh gives for them
-(`load_mesh` then treats them alike; `tests/test_scene_files.py` checks the two agree), and returns
+(`load_mesh` then treats them alike; `tests/test_plain_mesh.py` checks the two agree), and returns
 None for anything else (UVs, colours, materials, groups, polygons, faces without normals, other
 elements, a damaged file): trimesh reads those, and reports what is wrong with a damaged one.
 """
