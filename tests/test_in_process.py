@@ -45,6 +45,16 @@ def test_solve_takes_the_visibility_it_just_cast_and_gets_the_same_bits(tmp_path
     np.testing.assert_array_equal(_relit(scene), relit)  # (its coverage: the kept hits, then cast again)
 
 
+def test_a_solve_after_a_visibility_command_in_the_same_process_takes_its_rows(tmp_path, monkeypatch):
+    """`visibility`, then `solve` (its visibility stage up to date) in one process: the kept rows
+    are still the file's, and the solve takes them."""
+    scene = copy_sample(tmp_path / "scene")
+    ok(invoke(scene, "visibility", "--resolution", RES))
+    reads = _counting_reads(monkeypatch)
+    ok(invoke(scene, "solve", "--resolution", RES))
+    assert reads == []
+
+
 def test_a_visibility_file_changed_since_is_read_not_the_memory(tmp_path, monkeypatch):
     scene = copy_sample(tmp_path / "scene")
     ok(invoke(scene, "visibility", "--resolution", RES))

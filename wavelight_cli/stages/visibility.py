@@ -139,9 +139,12 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
             return Ran([out], summary)
 
         d = run_stage(cache, stage, console, force, work)
-        kept = _KEPT.pop(str(out), None)
-        if d.run and kept is not None and kept[0] is None:  # (the file is in place once the stage is done)
-            _KEPT[str(out)] = (_signature(out), kept[1])
+        kept = _KEPT.get(str(out))
+        if kept is not None and kept[0] is None:  # stamped once the file is in place (after a run), else stale
+            if d.run:
+                _KEPT[str(out)] = (_signature(out), kept[1])
+            else:
+                del _KEPT[str(out)]
         if d.run:
             partial = cache.dir / "partial"
             shutil.rmtree(partial / f"{view.name}-{opts.slot}-{d.key[:16]}", ignore_errors=True)
