@@ -227,9 +227,16 @@ def _cast_entries(backend, origins: np.ndarray, geo: np.ndarray, pixel: np.ndarr
         out = np.empty(n, bool)
 
         def run(mine):
+            # (gathered by np.take into this thread's buffers: fancy indexing allocates each chunk and
+            # took a third of the kernel's time, 91 against 28 ms for 2 M rays)
+            o = np.empty((min(n, CAST_CHUNK), 3), np.float32)
+            d = np.empty_like(o)
             for a in mine:
                 sl = slice(a, min(n, a + CAST_CHUNK))
-                out[sl] = ~backend.occluded_local(origins[pixel[sl]], dirs32[texel[sl]])
+                k = sl.stop - sl.start
+                np.take(origins, pixel[sl], axis=0, out=o[:k])
+                np.take(dirs32, texel[sl], axis=0, out=d[:k])
+                out[sl] = ~backend.occluded_local(o[:k], d[:k])
 
         starts = list(range(0, n, CAST_CHUNK))
         if not threads or backend.threads == 1 or len(starts) == 1:
