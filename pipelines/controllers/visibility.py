@@ -76,11 +76,12 @@ def used_pixels(camera, pose, mesh, mask, options: VisibilityOptions, pose_path=
     return (*found[:2], backend, *found[2:])
 
 
-def adaptive_visibility(backend, samples, cube, options: VisibilityOptions, progress=None):
-    """The stored rows of every used pixel by `coherent_visibility`, and its statistics."""
+def adaptive_visibility(backend, samples, cube, options: VisibilityOptions, progress=None, image_size=None):
+    """The stored rows of every used pixel by `coherent_visibility`, and its statistics; `image_size`
+    (height, width) of the image the samples are pixels of."""
     from ..geometry.visibility import coherent_visibility
 
-    return coherent_visibility(backend, samples, cube, options.supersample, progress=progress)
+    return coherent_visibility(backend, samples, cube, options.supersample, progress=progress, image_size=image_size)
 
 
 def exact_rows(backend, samples, cube, options: VisibilityOptions, rows: slice) -> tuple[np.ndarray, int]:

@@ -305,7 +305,7 @@ def _on_threads(fn, blocks: list, threads: int) -> list:
 
 def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersample: int = 1,
                         spacing: int | None = None, check_entries: int = CHECK_ENTRIES, seed: int = 0,
-                        progress=None) -> tuple[np.ndarray, AdaptiveStats]:
+                        progress=None, image_size: tuple[int, int] | None = None) -> tuple[np.ndarray, AdaptiveStats]:
     """Visibility of every used pixel, casting rays only where the shadows change across the image.
 
     Neighbouring pixels see nearly the same occluders: a shadow boundary is a curve in the image
@@ -313,10 +313,12 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
     pixels on a grid of `spacing` pixels (a power of two; default `base_spacing`) are cast in
     full. Then, halving the spacing, the centres of the grid's squares, then the midpoints of their
     vertical edges, then of their horizontal ones, each take a texel's value from their known
-    neighbours among the 8 at that spacing when at least 4 of them are known, all of them could
+    neighbours among the 8 at that spacing when at least 4 of them are known (or, with
+    `image_size` (height, width) given, 3 with the others beyond the image's border: a pixel on the
+    border between two known ones, where the grid's last cell is cut off), all of them could
     see the texel (it is in front of their normals) and they agree on it (all lit, or all in
-    shadow); every other texel the pixel could see is cast. Pixels at silhouettes and image
-    borders, and texels near a pixel's horizon, are therefore cast, and a shadow narrower than the
+    shadow); every other texel the pixel could see is cast. Pixels at silhouettes and mask edges,
+    and texels near a pixel's horizon, are therefore cast, and a shadow narrower than the
     grid is found wherever it touches a known pixel at some spacing.
 
     What this misses (an occluder whose shadow slips between all the known pixels) is measured: a
@@ -413,7 +415,11 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
                 all_lit = np.full((len(jb), nb), 0xFF, np.uint8)
                 all_dark = np.full((len(jb), nb), 0xFF, np.uint8)
                 present = np.zeros(len(jb), np.int64)
+                beyond = np.zeros(len(jb), np.int64)  # neighbours beyond the image's border
                 for dr, dc in offsets:
+                    if image_size is not None:
+                        rr, cc = pix[jb, 0] + dr, pix[jb, 1] + dc
+                        beyond += (rr < 0) | (rr >= image_size[0]) | (cc < 0) | (cc >= image_size[1])
                     k = index[pix[jb, 0] + spacing + dr, pix[jb, 1] + spacing + dc]
                     ok = k >= 0
                     ok[ok] = known[k[ok]]
@@ -422,7 +428,9 @@ def coherent_visibility(backend, samples: PixelSamples, cube: CubeMap, supersamp
                     all_lit[ok] &= lit[kk]
                     all_dark[ok] &= dark[kk]
                 agree = all_lit | all_dark
-                agree[present < 4] = 0
+                # 4 known neighbours, or at the image's border 3 with the others beyond it (a pixel on
+                # the border between two known ones: the grid's last cell there is cut off)
+                agree[(present < 4) & ((present < 3) | (present + beyond < 4))] = 0
                 cj = can[jb]
                 need[b] = cj & ~agree
                 np.bitwise_and(cj, agree, out=inferred[b])

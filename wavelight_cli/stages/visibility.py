@@ -23,7 +23,7 @@ from ..cache import Decision, Ran, SceneCache, Stage, run_stage
 from ..console import Console
 from ..scene import SceneFiles, View, photo_view, require
 
-VERSION = 5  # 5: each pixel's normal Jacobian (the normal's turn across the pixel: a glossy lobe's footprint widening); 4: hit points located in float64 on the hit face, shadow offset from float32 precision (issue 17)
+VERSION = 6  # 6: the adaptive inference at the image border (3 known neighbours, the rest beyond the image); 5: each pixel's normal Jacobian (the normal's turn across the pixel: a glossy lobe's footprint widening); 4: hit points located in float64 on the hit face, shadow offset from float32 precision (issue 17)
 KEEP = 4  # visibility results kept per view
 CHUNK_PIXELS = 1024  # rows per resumable chunk of the exact method
 KEEP_IN_MEMORY = 8  # adaptive results kept in memory for a solve in the same process (`read_kept`)
@@ -118,7 +118,7 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
                         f"{opts.method}, {opts.backend})")
             t0 = time.monotonic()
             if opts.method == "adaptive":
-                stored, summary = _adaptive(backend, samples, cube, opts, console, name)
+                stored, summary = _adaptive(backend, samples, cube, opts, console, name, (camera.height, camera.width))
                 chunks, rows_per_chunk = iter([stored]), CHUNK_PIXELS
             else:
                 chunks, rows_per_chunk, summary = _exact(cache, d, backend, samples, cube, opts, console, name)
@@ -170,7 +170,7 @@ def _result_line(name: str, summary: dict, rel: str) -> str:
     return f"{name}: done in {summary['seconds_casting']:.1f} s ({summary['rays_cast_this_run'] / 1e6:.1f} M rays cast) -> {rel}"
 
 
-def _adaptive(backend, samples, cube, opts, console, name):
+def _adaptive(backend, samples, cube, opts, console, name, image_size):
     from pipelines.controllers.visibility import adaptive_visibility
 
     task = console.task(name, "casting", 1, "refinement steps")
@@ -179,7 +179,7 @@ def _adaptive(backend, samples, cube, opts, console, name):
         task.total = total
         task.update(done)
 
-    stored, stats = adaptive_visibility(backend, samples, cube, opts, progress)
+    stored, stats = adaptive_visibility(backend, samples, cube, opts, progress, image_size)
     task.close()
     return stored, {**stats.as_dict(), "rays_cast_this_run": stats.cast * opts.supersample**2}
 
