@@ -392,3 +392,37 @@ def test_invalid_material_values_raise_value_error(data):
 def test_invalid_material_constructor_raises(kwargs):
     with pytest.raises(ValueError):
         Material(**kwargs)
+
+
+# -- the diffuse radiance as one product (`lambert_radiance`) -----------------------------------
+@pytest.mark.parametrize("R", [8, 32])
+def test_linear_diffuse_sum_is_the_clamped_transport(mitsuba_scene, R):
+    """Visibility as wavelight casts it (0 wherever a texel is not castable): N . (V @ (m L)) / pi
+    against diffuse_transport(V) @ L, float64 sums. At R = 32 the clamp it drops at texels that
+    straddle a pixel's horizon changes less than float32 rounding does, and `render` takes it; at R = 8
+    the slivers are larger (~3e-6) and `render` keeps the transport."""
+    from pipelines.geometry.visibility import compute_visibility
+    from pipelines.model.render import diffuse_transport, lambert_radiance, linear_diffuse
+
+    scene = mitsuba_scene("spot_overcast")
+    samples = scene.samples.take(slice(0, None, 7))
+    cube = CubeMap(R)
+    vis = compute_visibility(scene.backend, samples, cube)
+    assert vis.castable_only
+    V = vis.dense()
+    L = np.random.default_rng(3).random((cube.n_texels, 3)) ** 3
+    clamped = diffuse_transport(V, samples.normal, cube).astype(np.float64) @ L
+    ref = (np.maximum(samples.normal @ cube.vector_solid_angles.T, 0.0) * V / np.pi) @ L  # float64
+    linear = lambert_radiance(V, samples.normal, cube, L)
+    rel = lambda a: float(np.sqrt(((a - ref) ** 2).sum() / (ref**2).sum()))
+    assert rel(clamped) < 1e-7  # float32 rounding of the transport
+    assert linear_diffuse(vis) == (R >= 32)
+    if R >= 32:
+        assert rel(linear) < 1e-6
+        np.testing.assert_allclose(render(vis, L, LAMBERT), clamped, rtol=2e-5)
+    else:
+        assert 1e-7 < rel(linear) < 1e-4  # (what makes R < 32 keep the transport)
+        np.testing.assert_allclose(render(vis, L, LAMBERT), clamped, rtol=1e-6)
+    # the same rows without the guarantee (V may be 1 behind the normal): the transport, always
+    loose = VisibilityData(samples, cube, 1, vis.stored)
+    np.testing.assert_allclose(render(loose, L, LAMBERT), clamped, rtol=1e-6)

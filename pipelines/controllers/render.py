@@ -19,7 +19,7 @@ def render_view(vis, light: np.ndarray, material, backend=None, albedo=None) -> 
         recast = bright_texels(light, vis.cube)
         if len(recast):
             stored = recast_columns(backend, vis.samples, vis.cube, np.asarray(vis.stored), recast, vis.supersample)
-            vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method)
+            vis = VisibilityData(vis.samples, vis.cube, vis.supersample, stored, vis.method, vis.castable_only)
     return render(vis, light, material, albedo=None if albedo is None else albedo(vis.samples),
                   specular=_specular(albedo, vis.samples)), recast
 

@@ -401,7 +401,7 @@ class _Systems:
         old = np.asarray(v.stored)
         stored = recast_columns(backend, v.samples, v.cube, old, texels, v.supersample)
         changed = np.flatnonzero((stored != old).any(axis=1))
-        self.vis = VisibilityData(v.samples, v.cube, v.supersample, stored)
+        self.vis = VisibilityData(v.samples, v.cube, v.supersample, stored, castable_only=v.castable_only)
         out = {"pixels": int(len(changed))}
         if self.options.exact:
             return out

@@ -66,7 +66,7 @@ def combine(datas: list, names: list, shapes: list):
     samples = PixelSamples.concatenate([d.samples for d in datas], np.concatenate(pixel).astype(np.int32))
     stored = np.concatenate([np.asarray(d.stored) for d in datas])
     method = "adaptive" if any(d.method == "adaptive" for d in datas) else first.method
-    return (VisibilityData(samples, first.cube, first.supersample, stored, method),
+    return (VisibilityData(samples, first.cube, first.supersample, stored, method, all(d.castable_only for d in datas)),
             Layout(list(names), starts, list(shapes), stride))
 
 
@@ -180,7 +180,7 @@ def subset(vis, rows: np.ndarray):
 
     rows = np.asarray(rows)
     samples = vis.samples.take(rows)
-    return VisibilityData(samples, vis.cube, vis.supersample, np.asarray(vis.stored)[rows], vis.method)
+    return VisibilityData(samples, vis.cube, vis.supersample, np.asarray(vis.stored)[rows], vis.method, vis.castable_only)
 
 
 def per_view_errors(result, values: np.ndarray, usable: np.ndarray, held: np.ndarray, layout: Layout,

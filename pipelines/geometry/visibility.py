@@ -135,6 +135,9 @@ class VisibilityData:
     supersample: int
     stored: object  # (P, width) uint8 array or h5py dataset
     method: str = "exact"  # how it was computed: "exact" (every ray) or "adaptive" (`coherent_visibility`)
+    # V is 0 wherever a texel is not `castable` (behind the shading normal or the facet), as in every
+    # visibility wavelight casts and stores: the diffuse radiance is then linear in N (`lambert_radiance`)
+    castable_only: bool = False
 
     @property
     def encoding(self) -> str:
@@ -170,7 +173,7 @@ def compute_visibility(backend, samples: PixelSamples, cube: CubeMap, supersampl
                                      cube, supersample))
         if progress:
             progress(min(len(samples), a + rows_per_chunk), len(samples))
-    return VisibilityData(samples, cube, supersample, np.concatenate(parts, axis=0))
+    return VisibilityData(samples, cube, supersample, np.concatenate(parts, axis=0), castable_only=True)
 
 
 # -- adaptive visibility: cast where the image says the shadows change ------------------------------

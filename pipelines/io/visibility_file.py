@@ -69,7 +69,9 @@ def read_visibility(path: str | Path, in_memory: bool = True) -> VisibilityData:
         if cube.n_texels != int(f.attrs["n_texels"]):
             raise InputError("texel count does not match its layout", path, "delete it; the next run rebuilds it")
         stored = f["visibility"][:] if in_memory else f["visibility"]
-        data = VisibilityData(samples, cube, int(f.attrs["supersample"]), stored, str(f.attrs.get("method", "exact")))
+        # (the stored rows hold V = 0 wherever a texel is not castable: `castable_only`)
+        data = VisibilityData(samples, cube, int(f.attrs["supersample"]), stored, str(f.attrs.get("method", "exact")),
+                              castable_only=True)
         if in_memory:
             f.close()
         return data

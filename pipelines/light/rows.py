@@ -959,7 +959,8 @@ class TransportRows:
 
         rows = np.asarray(rows, np.int64)
         sub = vis.samples.take(rows)
-        self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows])
+        self.vis = VisibilityData(sub, vis.cube, vis.supersample, np.asarray(vis.stored)[rows],
+                                  castable_only=vis.castable_only)
         self.rows = rows
         self._diffuse: Pyramid | None = None
         self._coated: tuple | None = None  # (plastic key, D seen through the coating, the material)

@@ -34,7 +34,8 @@ from scipy.optimize import least_squares, nnls
 from ..geometry.visibility import VisibilityData, decode
 from .materials import PLASTIC, SPECULAR_MODELS, Material
 from ..threads import parallel_blocks
-from .render import KERNEL_ROWS, lobe_norm, specular_factors, transport
+from .render import (KERNEL_ROWS, diffuse_transport, lambert_radiance, lambert_weights, linear_diffuse, lobe_norm,
+                     specular_factors)
 
 SHININESS_RANGE = (0.5, 20000.0)  # a fitted n outside this is no specular lobe we can resolve
 SCAN_SHININESS = tuple(2.0 ** k for k in range(0, 14))  # 1 .. 8192: the restart scan over n
@@ -202,7 +203,7 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
     diffuse = np.empty((len(rows), 3))
     A = np.empty((len(rows), len(lit)), np.float32)
     log_c = np.empty((len(rows), len(lit)), np.float32)
-    lambert = Material()
+    lambert_w, linear = lambert_weights(cube, L), linear_diffuse(vis)
     # blocks of stored rows, keeping the selected ones (`rows` is sorted), on both cores
     firsts = np.arange(0, P, _CHUNK)
     bounds = np.searchsorted(rows, np.append(firsts, P))
@@ -212,8 +213,10 @@ def specular_data(vis: VisibilityData, photo: np.ndarray, light: np.ndarray, mod
             k = slice(int(bounds[b]), int(bounds[b + 1]))
             r = rows[k]
             V = decode(np.asarray(vis.stored[r]), cube.n_texels, vis.encoding)
-            D, _ = transport(V, s.normal[r], s.view[r], cube, lambert)
-            diffuse[k] = D.astype(np.float64) @ L
+            if linear:
+                diffuse[k] = lambert_radiance(V, s.normal[r], cube, L, lambert_w)
+            else:
+                diffuse[k] = diffuse_transport(V, s.normal[r], cube).astype(np.float64) @ L
             Ab, c = specular_factors(V[:, lit], s.normal[r], s.view[r], cube, model, lit)
             A[k] = Ab
             with np.errstate(divide="ignore"):

@@ -133,7 +133,7 @@ def visibility_stage(scene: SceneFiles, opts: VisibilityOptions, console: Consol
                 while len(_KEPT) >= KEEP_IN_MEMORY:  # (a process that casts and never solves: the oldest go)
                     _KEPT.pop(next(iter(_KEPT)))
                 _KEPT[str(out)] = (None, VisibilityData(_as_read(samples), cube, opts.supersample,
-                                                        np.ascontiguousarray(stored), opts.method))
+                                                        np.ascontiguousarray(stored), opts.method, castable_only=True))
             summary = {**diag, "texels": cube.n_texels, **summary, "seconds_casting": time.monotonic() - t0}
             console.result(_result_line(name, summary, cache.relative(out)))
             return Ran([out], summary)
