@@ -208,9 +208,11 @@ class _Systems:
         self.sample_info = {"fit": self.fit_sample.summary(), "held_out": self.held_sample.summary(),
                             "explore_rows": min(EXPLORE_ROWS, len(self.fit_sample.rows))}
 
-    def system(self, material: Material, round_rows: int | None = None):
+    def system(self, material: Material, round_rows: int | None = None, rows: int | None = None):
         """The light system under `material`; `round_rows`: a specular round's, on that many rows
-        of the fit sample (its head: spread like the whole) and the whole held-out sample."""
+        of the fit sample (its head: spread like the whole) and the whole held-out sample; `rows`:
+        likewise on the fit sample's head, for a system that is not a round's (its parts' pieces are
+        not kept apart: `RowsPart.split_specular`)."""
         from ..light.system import LightSystem, build_normal_equations
 
         if self.options.exact:
@@ -227,7 +229,7 @@ class _Systems:
         # the system solved before the robust pass's weights, if of this material: its tree systems are
         # taken over (any other goes before this one's transport is built: memory)
         before, self._reweighted = self._reweighted, None
-        if before is not None and (round_rows is not None or not _same_material(before[0], material)):
+        if before is not None and (round_rows is not None or rows is not None or not _same_material(before[0], material)):
             before = None
         before = None if before is None else before[1]
         a = self.albedo
@@ -236,7 +238,8 @@ class _Systems:
         # (a specular system's pieces per part pay off only for a round's system, re-solved under new factors)
         grouped = {} if a is None else {"scales": a.scales, "split_specular": round_rows is not None,
                                         "ks_scales": a.ks_scales}
-        fit = self.fit_rows.part(material, self.targets[fs.rows], self.fit_w, fs.candidates, round_rows,
+        fit = self.fit_rows.part(material, self.targets[fs.rows], self.fit_w, fs.candidates,
+                                 round_rows if rows is None else rows,
                                  None if a is None else a.base[fs.rows],
                                  group=None if a is None else a.part[fs.rows], **grouped)
         held = self.held_rows.part(material, self.targets[hs.rows], self.held_w, hs.candidates,
@@ -816,9 +819,14 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # same smaller system, so that every round's errors are over the same rows
             # (the round's system before holds its lobe's transports (heads of them): they go before
             # this one's are built, or both are held at once: memory)
+            # The first light's exploration is on the explore rows (the fit sample's head) and the
+            # held-out ones, and only its tree is kept: its system is built on that head alone, which
+            # the round's system then shares (the same lobe's transport, not built again), instead of
+            # the lobe's transport for every fit row (teapot_sun_phong: 16 k rows under each of three
+            # lobes) that only the exploration's last fit error over all of them would have read
             last_round.clear()
             if ("model", m.model) not in refined:
-                full_solve(m, systems.system(m))
+                full_solve(m, systems.system(m, rows=max(ROUND_ROWS, EXPLORE_ROWS)))
             # (re-solved on its held-out rows too: the round's light feeds the next LM fit, which a
             # light fitted to fewer rows leads astray: suzanne_plastic_sun's alpha 0.1285 -> 0.1321,
             # its sun 1.4 -> 5.5 deg off, with the fit rows' light alone)
