@@ -81,6 +81,14 @@ def envmap_image(data: np.ndarray) -> np.ndarray:
     return data[:, 1:1 + 2 * ENV_H, :3] if cols == 2 * ENV_H + 2 else data[:, :2 * ENV_H, :3]
 
 
+def peer_latlong(image: np.ndarray, rows: int = 2 * ENV_H) -> np.ndarray:
+    """The peer's light in our lat-long convention, `rows` x 2 `rows`: what Mitsuba's envmap reads
+    from `image` (its own layout, `exports.to_mitsuba`: 2 ENV_H + 1 rows on its pole-to-pole grid,
+    columns mirrored) at our pixel centres, by its bilinear lookup (`exports.mitsuba_lookup`)."""
+    d = cubemap.latlong_directions(rows).reshape(-1, 3)
+    return exports.mitsuba_lookup(image, d).reshape(rows, 2 * rows, -1)
+
+
 def mitsuba_scene(mi, scene_dir: Path, work: Path, kd, env0: np.ndarray, spp: int):
     camera = read_camera(scene_dir / "camera.json")
     pose = read_pose(scene_dir / "pose.json")
@@ -153,8 +161,7 @@ def run_mitsuba(scene_dir: Path, work: Path, iterations: int, spp: int, truth_E,
             data = np.array(params[key])
             if it == iterations - 1 or len(curve) == 0:
                 log(f"mitsuba: envmap tensor {data.shape}")
-            env = envmap_image(data)
-            ours = exports.to_mitsuba(env)  # the mirror is its own inverse
+            ours = peer_latlong(envmap_image(data))
             image_err = float(np.sqrt(float(np.array(loss).ravel()[0])) / ref_norm)
             curve.append([elapsed, image_err, light_error(ours.astype(np.float64), truth_E, normals)])
             log(f"mitsuba: iteration {it + 1}: {elapsed:.1f} s, image {100 * image_err:.2f} %, "
