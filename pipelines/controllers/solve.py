@@ -810,7 +810,7 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # the levels are explored again under the new factors without a pass over the rows
             ne = with_scales(previous, albedo.scales)
             return full_solve(m, ne), ne
-        if not options.exact and m.specular:
+        if not options.exact and m.specular and bases.BASES[light_options.basis].module == "tree":
             # a reflectance round: the tree refined under this model re-solved on a smaller system (the
             # rounds fit a handful of material parameters; the final light is refined on the whole
             # sample). A model's first light refines first (the levels explored under it: a tree
@@ -818,7 +818,8 @@ def solve_scene(vis, photo, material: Material, options: SolveOptions, reflectan
             # 092's plastic rounds fitted 18 % on it against 9 % on their own), then re-solves on the
             # same smaller system, so that every round's errors are over the same rows
             # (the round's system before holds its lobe's transports (heads of them): they go before
-            # this one's are built, or both are held at once: memory)
+            # this one's are built, or both are held at once: memory). The bases without a tree solve
+            # every round's light afresh, below.
             # The first light's exploration is on the explore rows (the fit sample's head) and the
             # held-out ones, and only its tree is kept: its system is built on that head alone, which
             # the round's system then shares (the same lobe's transport, not built again), instead of
