@@ -426,3 +426,40 @@ def test_linear_diffuse_sum_is_the_clamped_transport(mitsuba_scene, R):
     # the same rows without the guarantee (V may be 1 behind the normal): the transport, always
     loose = VisibilityData(samples, cube, 1, vis.stored)
     np.testing.assert_allclose(render(loose, L, LAMBERT), clamped, rtol=1e-6)
+
+
+# -- a sparse light: the lit texels' columns alone (`render`) ---------------------------------------
+@pytest.mark.parametrize("model", ["blinn-phong", "plastic"])
+def test_render_of_a_sparse_light_forms_only_its_lit_texels(mitsuba_scene, model):
+    """A light with a tenth of its texels lit renders from their columns alone; against the full
+    transports (every texel) in float64: the same to float32 rounding, with matte rows and rows at
+    half their specular weight, and under plastic with grazing views, whose cap is that of the lobe
+    over every texel (not only the lit ones)."""
+    from pipelines.geometry.visibility import compute_visibility
+    from pipelines.model import microfacet as mf
+    from pipelines.model.render import SPARSE_LIGHT_SHARE, transport
+
+    scene = mitsuba_scene("teapot_sun_phong")
+    samples = scene.samples.take(slice(0, None, 11))
+    cube = CubeMap(16)
+    vis = compute_visibility(scene.backend, samples, cube)
+    rng = np.random.default_rng(5)
+    L = np.zeros((cube.n_texels, 3))
+    lit = rng.choice(cube.n_texels, cube.n_texels // 10, replace=False)
+    L[lit] = rng.random((len(lit), 3)) * 10
+    assert len(lit) <= SPARSE_LIGHT_SHARE * cube.n_texels
+    material = (Material(model="plastic", kd=(0.6, 0.5, 0.4), ks=(1.0,) * 3, roughness=0.2)
+                if model == "plastic" else Material(model="blinn-phong", kd=(0.6, 0.5, 0.4), ks=(0.3,) * 3, shininess=40))
+    weight = np.ones(vis.n_pixels)
+    weight[::5], weight[::7] = 0.5, 0.0
+    nv = np.einsum("pk,pk->p", samples.normal, samples.view)
+    if model == "plastic":
+        assert (nv[weight > 0] < mf.GRAZING_NV).sum() >= 5  # (the cap is exercised)
+    D, S = transport(vis.dense(), samples.normal, samples.view, cube, material, weight,
+                     mf.samples_footprint(samples, slice(None), material))
+    ref = np.asarray(material.kd) * (D.astype(np.float64) @ L) + np.asarray(material.ks) * (S.astype(np.float64) @ L)
+    out = render(vis, L, material, specular=weight)
+    assert float(np.sqrt(((out - ref) ** 2).sum() / (ref**2).sum())) < 1e-6
+    # and lit everywhere (the full route), the same light with its dark texels at a negligible level
+    dense = np.where(L > 0, L, 1e-30)
+    np.testing.assert_allclose(render(vis, dense, material, specular=weight), out, rtol=1e-5, atol=1e-12)

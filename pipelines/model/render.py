@@ -26,6 +26,7 @@ from . import microfacet as mf
 from .materials import PLASTIC, Material
 
 KERNEL_ROWS = 256  # rows per block of the transport kernels: a block's scratch stays in cache
+SPARSE_LIGHT_SHARE = 0.5  # `render` forms the lit texels' columns alone when at most this share is lit
 
 def facing(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(P, N) cosines max(0, N . d) between shading normals and texel directions (float32)."""
@@ -117,10 +118,11 @@ def transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeM
 
 
 def matte_rows(D: np.ndarray | None, S: np.ndarray | None, V: np.ndarray, normals: np.ndarray, cube: CubeMap,
-               material: Material, specular: np.ndarray) -> None:
+               material: Material, specular: np.ndarray, texels: np.ndarray | None = None) -> None:
     """In place: the rows of pixels without the specular term (`specular` (P,) 0) lose the lobe (S
     rows 0) and, under `plastic`, the coating (D rows the plain Lambertian ones); the other rows' lobe
-    is multiplied by their weight (a part's specular weight, `parts.PixelAlbedo.ks_scales`)."""
+    is multiplied by their weight (a part's specular weight, `parts.PixelAlbedo.ks_scales`). `texels`:
+    D, S and V hold these texels' columns alone."""
     w = np.asarray(specular)
     if S is not None:
         scaled = np.flatnonzero((w != 0) & (w != 1))
@@ -132,7 +134,7 @@ def matte_rows(D: np.ndarray | None, S: np.ndarray | None, V: np.ndarray, normal
     if S is not None:
         S[matte] = 0.0
     if D is not None and material.model == PLASTIC:
-        D[matte] = diffuse_transport(V[matte], normals[matte], cube, None)
+        D[matte] = diffuse_transport(V[matte], normals[matte], cube, None, texels=texels)
 
 
 # `lambert_radiance` from this face resolution up: dropping the clamp at a texel straddling the horizon
@@ -175,22 +177,25 @@ def lambert_radiance(V: np.ndarray, normals: np.ndarray, cube: CubeMap, light: n
 
 
 def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, material: Material | None = None,
-                      views: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+                      views: np.ndarray | None = None, out: np.ndarray | None = None,
+                      texels: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the diffuse part of `transport` (kd = 1): V max(0, N . m_i) / pi, and for a
     `plastic` material that seen through its coating: x t(N.d_i) t(N.v) / (eta^2 (1 - Fdr)) (t at the
     texel's centre direction; `views` needed).
 
     V may be float32 (fractions) or the 0/1 uint8 of bit-packed rows (`VisibilityData.blocks(raw=True)`).
-    Formed in place (in `out` when given: (P, N) float32), in blocks of rows on both cores."""
-    P, N = len(normals), cube.n_texels
-    m = cube.vector_solid_angles.astype(np.float32)
+    Formed in place (in `out` when given: (P, N) float32), in blocks of rows on both cores. `texels`:
+    the columns of these texels alone (V (P, K) holds theirs)."""
+    pick = slice(None) if texels is None else texels
+    m = cube.vector_solid_angles[pick].astype(np.float32)
+    P, N = len(normals), len(m)
     nrm = np.asarray(normals, np.float32)
     out = np.empty((P, N), np.float32) if out is None else out
     inv_pi = np.float32(1.0 / np.pi)
     plastic = material is not None and material.model == PLASTIC
     if plastic:
         coat = mf.coating(material.roughness, material.ior, material.distribution)
-        d = cube.directions.astype(np.float32)
+        d = cube.directions[pick].astype(np.float32)
         t_view = (coat.transmittance(np.einsum("pk,pk->p", normals, views)) * coat.base_scale).astype(np.float32)
 
     def run(starts):
@@ -214,15 +219,18 @@ def diffuse_transport(V: np.ndarray, normals: np.ndarray, cube: CubeMap, materia
 
 def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
                                material: Material, out: np.ndarray | None = None,
-                               footprint: np.ndarray | None = None) -> np.ndarray:
+                               footprint: np.ndarray | None = None, texels: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the coating's lobe (ks = 1): V w_i F(v.h) D(h) G1(v) G1(d_i) / (4 N.v) at the texel
     centres, with the roughness widened by the texel and by the pixel's footprint (`footprint`: (P, 2)
     or None; `microfacet.lobe_factors`, `lobe_values`), views with
     N.v < GRAZING_NV capped at the coating's specular albedo (`microfacet.grazing_cap`); blocks of
-    rows on both cores (in `out` when given: (P, N) float32)."""
-    P, N = len(normals), cube.n_texels
-    d = cube.directions.astype(np.float32)
-    w = cube.solid_angles.astype(np.float32)[None, :]
+    rows on both cores (in `out` when given: (P, N) float32). `texels`: the columns of these texels
+    alone (V (P, K) holds theirs): a grazing view's cap is still that of its lobe over every texel."""
+    P = len(normals)
+    d_all = cube.directions.astype(np.float32)
+    w_all = cube.solid_angles.astype(np.float32)[None, :]
+    d, w = (d_all, w_all) if texels is None else (d_all[texels], w_all[:, texels])
+    N = len(d)
     nrm = np.asarray(normals, np.float32)
     vw = np.asarray(views, np.float32)
     nv_all = np.einsum("pk,pk->p", nrm, vw)
@@ -232,24 +240,34 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
     out = np.empty((P, N), np.float32) if out is None else out
     b = min(KERNEL_ROWS, max(P, 1))
 
+    def lobe(rows, dirs, weights, o, nd, vd):
+        """The lobe (before the grazing cap and shadowing) of pixels `rows` at `dirs`, in `o`."""
+        np.matmul(nrm[rows], dirs.T, out=nd)
+        np.matmul(vw[rows], dirs.T, out=vd)
+        A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd, nv_all[rows, None].astype(np.float32), vd, weights, eta,
+                                                     footprint=None if footprint is None else footprint[rows])
+        mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
+        o *= A
+        o *= mf.smith_g1_f32(t2d, alpha, dist)
+        o *= g1v_all[rows, None]
+        return o
+
     def run(blocks):
         nd, vd = np.empty((b, N), np.float32), np.empty((b, N), np.float32)
         for a in blocks:
             sl = slice(a, min(P, a + b))
             k = sl.stop - sl.start
-            np.matmul(nrm[sl], d.T, out=nd[:k])
-            np.matmul(vw[sl], d.T, out=vd[:k])
-            A, x2, y2, wx, wy, t2d = mf.lobe_factors_f32(nd[:k], nv_all[sl, None].astype(np.float32), vd[:k], w, eta,
-                                                         footprint=None if footprint is None else footprint[sl])
-            o = out[sl]
-            mf.lobe_values(x2, y2, wx, wy, alpha, dist, out=o)
-            o *= A
-            o *= mf.smith_g1_f32(t2d, alpha, dist)
-            o *= g1v_all[sl, None]
+            o = lobe(sl, d, w, out[sl], nd[:k], vd[:k])
             graze = nv_all[sl] < mf.GRAZING_NV
             if graze.any():  # the lobe's energy at grazing views, before shadowing (`microfacet.grazing_cap`)
-                o[graze] *= mf.grazing_cap(o[graze].sum(axis=1), nv_all[sl][graze], alpha, eta,
-                                           dist).astype(np.float32)[:, None]
+                rows = np.arange(sl.start, sl.stop)[graze]
+                if texels is None:
+                    total = o[graze].sum(axis=1)
+                else:  # (its sum over every texel: these few rows' whole lobe)
+                    g = len(rows)
+                    total = lobe(rows, d_all, w_all, np.empty((g, len(d_all)), np.float32),
+                                 np.empty((g, len(d_all)), np.float32), np.empty((g, len(d_all)), np.float32)).sum(axis=1)
+                o[graze] *= mf.grazing_cap(total, nv_all[rows], alpha, eta, dist).astype(np.float32)[:, None]
             o *= V[sl]
 
     parallel_blocks(run, list(range(0, P, b)))
@@ -258,23 +276,26 @@ def plastic_specular_transport(V: np.ndarray, normals: np.ndarray, views: np.nda
 
 def specular_transport(V: np.ndarray, normals: np.ndarray, views: np.ndarray, cube: CubeMap,
                        material: Material, out: np.ndarray | None = None,
-                       footprint: np.ndarray | None = None) -> np.ndarray:
+                       footprint: np.ndarray | None = None, texels: np.ndarray | None = None) -> np.ndarray:
     """(P, N) float32 the specular part of `transport` (ks = 1) for the material's model and n:
     V w_i max(0, N.d_i) norm(n) c_i^n with c the lobe cosine, 0 where c <= 0 (`specular_factors`).
 
     Computed in blocks of rows with reused scratch arrays and c^n = exp(n log c): the same numbers
     as `specular_factors` to float32 rounding, several times faster (no (P, N) temporaries; numpy's
-    float32 power is not vectorised, exp and log are). In `out` when given ((P, N) float32)."""
+    float32 power is not vectorised, exp and log are). In `out` when given ((P, N) float32). `texels`:
+    the columns of these texels alone (V (P, K) holds theirs)."""
     if material.model == PLASTIC:
-        return plastic_specular_transport(V, normals, views, cube, material, out, footprint)
-    P, N = len(normals), cube.n_texels
+        return plastic_specular_transport(V, normals, views, cube, material, out, footprint, texels)
+    P = len(normals)
     model = material.model
     if model not in ("blinn-phong", "phong", "phong-classic"):
         raise ValueError(f"no specular lobe for model {model!r}")
     norm, _ = lobe_norm(material.shininess, model)
     n = np.float32(material.shininess)
-    d = cube.directions.astype(np.float32)
-    w = cube.solid_angles.astype(np.float32)[None, :] * np.float32(norm)
+    pick = slice(None) if texels is None else texels
+    d = cube.directions[pick].astype(np.float32)
+    w = cube.solid_angles[pick].astype(np.float32)[None, :] * np.float32(norm)
+    N = len(d)
     out = np.empty((P, N), np.float32) if out is None else out
     nrm = np.asarray(normals, np.float32)
     vw = np.asarray(views, np.float32)
@@ -343,27 +364,35 @@ def render(vis: VisibilityData, light: np.ndarray, material: Material, rows: int
     # (the diffuse part without its transport, `lambert_radiance`, where V holds only castable texels;
     # not under plastic: its coating's transmittance is not linear in N)
     weights = lambert_weights(vis.cube, L) if linear_diffuse(vis) and material.model != PLASTIC else None
+    # the texels the light leaves dark add nothing: for a sparse light (a few points, a sun) the
+    # transports are formed for the lit ones alone (a grazing view's cap under plastic is still that
+    # of its whole lobe: `plastic_specular_transport`); a wavelet light lights most texels, where
+    # gathering their columns of V costs what it saves
+    lit = np.flatnonzero(np.any(Lf != 0, axis=1))
+    lit = None if len(lit) > SPARSE_LIGHT_SHARE * len(Lf) else lit
+    Ll = Lf if lit is None else Lf[lit]
 
     def run(starts):  # a block of rows on each core, decoded, formed and multiplied there
         for a in starts:
             sl = slice(a, min(P, a + rows))
+            fp = mf.samples_footprint(s, sl, material)
             if weights is not None:
                 V = vis.block(sl)
                 diffuse = lambert_radiance(V, s.normal[sl], vis.cube, L, weights)
-                S = None
-                if material.specular:
-                    S = specular_transport(V, s.normal[sl], s.view[sl], vis.cube, material,
-                                           footprint=mf.samples_footprint(s, sl, material))
-                    if specular is not None:
-                        matte_rows(None, S, V, s.normal[sl], vis.cube, material, specular[sl])
+                D, V = None, (V if lit is None or not material.specular else V[:, lit])
             else:
                 V = vis.block(sl, raw=True)
-                D, S = transport(V, s.normal[sl], s.view[sl], vis.cube, material,
-                                 None if specular is None else specular[sl], mf.samples_footprint(s, sl, material))
-                diffuse = D @ Lf
+                V = V if lit is None else V[:, lit]
+                D = diffuse_transport(V, s.normal[sl], vis.cube, material, s.view[sl], texels=lit)
+            S = specular_transport(V, s.normal[sl], s.view[sl], vis.cube, material, footprint=fp,
+                                   texels=lit) if material.specular else None
+            if specular is not None and S is not None:
+                matte_rows(D, S, V, s.normal[sl], vis.cube, material, specular[sl], lit)
+            if D is not None:
+                diffuse = D @ Ll
             out[sl] = (kd if albedo is None else kd * albedo[sl]) * diffuse
             if S is not None:
-                out[sl] += ks * (S @ Lf)
+                out[sl] += ks * (S @ Ll)
             D = S = V = None  # (a block's transport goes before the next one's is built: memory)
 
     parallel_blocks(run, list(range(0, P, rows)))
