@@ -429,20 +429,22 @@ def test_linear_diffuse_sum_is_the_clamped_transport(mitsuba_scene, R):
 
 
 # -- a sparse light: the lit texels' columns alone (`render`) ---------------------------------------
-@pytest.mark.parametrize("model", ["blinn-phong", "plastic"])
-def test_render_of_a_sparse_light_forms_only_its_lit_texels(mitsuba_scene, model):
+@pytest.mark.parametrize("model, R", [("blinn-phong", 16), ("plastic", 16), ("blinn-phong", 32)])
+def test_render_of_a_sparse_light_forms_only_its_lit_texels(mitsuba_scene, model, R):
     """A light with a tenth of its texels lit renders from their columns alone; against the full
     transports (every texel) in float64: the same to float32 rounding, with matte rows and rows at
     half their specular weight, and under plastic with grazing views, whose cap is that of the lobe
-    over every texel (not only the lit ones)."""
+    over every texel (not only the lit ones). At R = 32 (Blinn-Phong) the diffuse part takes the
+    linear route (`lambert_radiance` over every texel) while the lobe takes the lit texels' columns."""
     from pipelines.geometry.visibility import compute_visibility
     from pipelines.model import microfacet as mf
-    from pipelines.model.render import SPARSE_LIGHT_SHARE, transport
+    from pipelines.model.render import SPARSE_LIGHT_SHARE, linear_diffuse, transport
 
     scene = mitsuba_scene("teapot_sun_phong")
-    samples = scene.samples.take(slice(0, None, 11))
-    cube = CubeMap(16)
+    samples = scene.samples.take(slice(0, None, 11 if R == 16 else 23))
+    cube = CubeMap(R)
     vis = compute_visibility(scene.backend, samples, cube)
+    assert linear_diffuse(vis) == (R >= 32)
     rng = np.random.default_rng(5)
     L = np.zeros((cube.n_texels, 3))
     lit = rng.choice(cube.n_texels, cube.n_texels // 10, replace=False)
