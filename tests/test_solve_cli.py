@@ -300,6 +300,35 @@ def test_the_brightest_region_joins_a_sun_split_over_texels_two_apart():
     assert _angle_deg(got["direction"], d[i]) > 1.0 and got["texels"] == 2
 
 
+def test_a_lobe_narrower_than_a_texel_under_a_sun_is_warned_about():
+    """`narrow_lobe_note`: a lobe narrower than a texel of the cube map (alpha below its width in
+    radians, pi / 2R) under a compact source (the brightest region holding 30 % of the power) gets a
+    warning that names a larger R; a wider lobe, a finer R, a diffuse light or no lobe do not. A
+    Phong-family lobe is measured by its equivalent alpha (Blinn-Phong n 2000: 0.032)."""
+    from dataclasses import replace
+
+    from pipelines.controllers.solve import brightest, narrow_lobe_note
+    from pipelines.light import cubemap
+    from pipelines.model.materials import Material
+
+    cube = cubemap.CubeMap(32)
+    sun = np.full((cube.n_texels, 3), 0.2)
+    sun[16 * 32 + 10] = 400.0
+    sky = np.ones((cube.n_texels, 3))
+    b_sun, b_sky = brightest(sun, cube), brightest(sky, cube)
+    assert b_sun["centroid"]["power_share"] > 0.3 > b_sky["centroid"]["power_share"]
+    narrow = Material(model="plastic", kd=(0.5,) * 3, ks=(1.0,) * 3, roughness=0.036, distribution="beckmann")
+    note = narrow_lobe_note(narrow, b_sun, 32)
+    assert note and "-R 64" in note and "2.8 deg" in note, note
+    assert narrow_lobe_note(narrow, b_sun, 64) is None  # a texel of 1.4 deg: 0.0245 < alpha
+    assert narrow_lobe_note(narrow, b_sky, 32) is None
+    assert narrow_lobe_note(replace(narrow, roughness=0.1), b_sun, 32) is None
+    assert narrow_lobe_note(Material(kd=(0.5,) * 3), b_sun, 32) is None
+    phong = Material(model="blinn-phong", kd=(0.5,) * 3, ks=(0.3,) * 3, shininess=2000.0)
+    assert phong.lobe_alpha == pytest.approx(np.sqrt(2.0 / 2002.0))
+    assert narrow_lobe_note(phong, b_sun, 32) and narrow_lobe_note(replace(phong, shininess=30.0), b_sun, 32) is None
+
+
 def test_recovered_sun_direction(solved):
     from pipelines.light import cubemap
     from pipelines.io import images

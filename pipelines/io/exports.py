@@ -369,7 +369,7 @@ def material_mapping(material, light_scale: float | None = None) -> dict:
                      "(and Mitsuba's) t(N.v) t(N.d) / (eta^2 (1 - Fdr)); Base Color gives the same albedo head on")
     else:
         n_half, peak, what = _phong_lobe(material)
-        alpha = float(np.sqrt(2.0 / (n_half + 2.0)))
+        alpha = material.lobe_alpha
         # the specular F0 x weight that gives the lobe's peak: s F0 D(0) / 4 = ks peak / pi, D(0) = 1 / (pi alpha^2)
         target = ks * peak * 4.0 * alpha**2
         ior = _ior_of_f0(float(np.max(target)))

@@ -97,6 +97,19 @@ class Material:
         """n for the Phong family, alpha for plastic."""
         return self.roughness if self.model == PLASTIC else self.shininess
 
+    @property
+    def lobe_alpha(self) -> float | None:
+        """The lobe's width as a microfacet alpha (its half vectors spread ~alpha / sqrt 2 radians
+        about the normal): plastic's roughness, or for the Phong family sqrt(2 / (n' + 2)) with n'
+        its half-vector exponent (Blinn-Phong's n; a Phong lobe about the mirror direction ~4n);
+        None without a lobe."""
+        if not self.specular:
+            return None
+        if self.model == PLASTIC:
+            return self.roughness
+        n_half = self.shininess if self.model == "blinn-phong" else 4.0 * self.shininess
+        return float(np.sqrt(2.0 / (n_half + 2.0)))
+
     def with_lobe(self, value: float) -> "Material":
         from dataclasses import replace
 
