@@ -587,7 +587,8 @@ def narrow_lobe_note(material: Material, bright: dict, resolution: int) -> str |
     share = float(bright.get("centroid", {}).get("power_share", 0.0))
     if alpha is None or alpha >= texel or share < SUN_SHARE:
         return None
-    return (f"the lobe (alpha {alpha:.3g}) is narrower than a texel of the light ({np.degrees(texel):.1f} deg at "
+    lobe = f"alpha {alpha:.3g}" if material.model == PLASTIC else f"n {material.shininess:.4g}, as wide as alpha {alpha:.3g}"
+    return (f"the lobe ({lobe}) is narrower than a texel of the light ({np.degrees(texel):.1f} deg at "
             f"R = {resolution}) and a compact source holds {100 * share:.0f} % of its power: the source sits at "
             f"its texels' centres, up to half a texel off, and so does its highlight (the fit bends the lobe's "
             f"width to make up for it); a larger R (-R {2 * resolution}: ~3x the time) resolves it")
