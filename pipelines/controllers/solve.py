@@ -591,7 +591,7 @@ def narrow_lobe_note(material: Material, bright: dict, resolution: int) -> str |
     return (f"the lobe ({lobe}) is narrower than a texel of the light ({np.degrees(texel):.1f} deg at "
             f"R = {resolution}) and a compact source holds {100 * share:.0f} % of its power: the source sits at "
             f"its texels' centres, up to half a texel off, and so does its highlight (the fit bends the lobe's "
-            f"width to make up for it); a larger R (-R {2 * resolution}: ~3x the time) resolves it")
+            f"width to make up for it); a larger R (-R {2 * resolution}: ~3x the time) resolves it better")
 
 
 # -- the controller -----------------------------------------------------------------------------
