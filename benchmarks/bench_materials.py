@@ -62,7 +62,8 @@ def main():
                           if isinstance(v, dict)},
            "probes": probe_errors(scene / "out" / "coefficients.h5", src), "novel_view": novel,
            "relit": report["relit"]["relative_rmse_vs_photo"], "held_out": report["solution"]["held_out_rmse"],
-           "sun_error_deg": sun, "kd": refl.get("kd"), "ks_over_kd": refl.get("ks_over_kd"), "n": refl.get("n"),
+           "sun_error_deg": sun, "warnings": report.get("warnings", []), "kd": refl.get("kd"),
+           "ks_over_kd": refl.get("ks_over_kd"), "n": refl.get("n"),
            "alpha": refl.get("alpha"), "distribution": refl.get("distribution"),
            "truth": {k: truth.get(k) for k in ("type", "distribution", "alpha", "kd", "ks", "n", "diffuse_reflectance")
                      if k in truth}}
