@@ -403,3 +403,56 @@ def test_a_model_that_cannot_follow_the_texture_keeps_the_plain_solve(tmp_path):
     assert _report(scene)["relit"]["relative_rmse_vs_photo"] == pytest.approx(p["before"], rel=1e-9)
     with h5py.File(scene / "out" / "coefficients.h5") as a, h5py.File(plain / "out" / "coefficients.h5") as b:
         np.testing.assert_array_equal(a["light"][()], b["light"][()])
+
+
+def test_a_few_specks_that_do_not_steer_the_light_refit_its_tree_alone(solved, tmp_path, monkeypatch):
+    """Four dead pixels move more than 1 % of the squared error but hardly the light: the chosen
+    level's tree refitted under the weights moves the prediction by less than ROBUST_STILL of the
+    noise, so its levels and model are kept, not explored again. The reference is the solve that
+    explores them again (ROBUST_STILL = 0): held-out error within 3 %, probes within 5 %. A 2 %
+    spoiled photo takes the whole re-solve (below)."""
+    from pipelines.controllers import solve as solve_module
+
+    from pipelines.io import images
+    from pipelines.io.visibility_file import read_visibility
+
+    scene = copy_scene(solved, tmp_path / "few")
+    # four dead pixels (0 in every channel) on the object
+    img = images.read_image(scene / "image.exr").pixels.copy()
+    pix = read_visibility(vis_file(scene)).samples.pixel
+    lit = pix[img[pix[:, 0], pix[:, 1]].mean(axis=1) > np.median(img[pix[:, 0], pix[:, 1]])]
+    dead = lit[np.random.default_rng(11).choice(len(lit), 4, replace=False)]
+    img[dead[:, 0], dead[:, 1]] = 0.0
+    images.write_exr(scene / "image.exr", img)
+    err = ok(invoke(scene, "solve", "--resolution", RES))
+    quick, quick_probe = _report(scene), _probe_errors(scene)
+    rep = quick["robust"]
+    assert rep["rounds"] >= 1 and rep["down_weighted_pixels"] >= 4, rep  # (the test means something: the pass ran)
+    assert rep["refit_change_sigmas"][0] < solve_module.ROBUST_STILL, rep
+    assert "its levels and model kept" in err
+    monkeypatch.setattr(solve_module, "ROBUST_STILL", 0.0)
+    err = ok(invoke(scene, "solve", "--resolution", RES, "--force"))
+    full, full_probe = _report(scene), _probe_errors(scene)
+    assert "its levels and model kept" not in err
+    # (the level may differ: these pixels also steered the first exploration, whose records are kept;
+    # measured: level 2 kept against level 3 explored again, held-out 3.877 % against 3.836 %,
+    # probes 1.53 / 14.08 % against 1.56 / 14.37 %)
+    a, b = quick["solution"], full["solution"]
+    assert abs(a["held_out_rmse"] - b["held_out_rmse"]) <= 0.03 * b["held_out_rmse"], (a["held_out_rmse"],
+                                                                                      b["held_out_rmse"])
+    for k in ("diffuse", "glossy"):
+        assert abs(quick_probe[k] - full_probe[k]) <= 0.05 * full_probe[k], (k, quick_probe, full_probe)
+
+
+def test_specks_that_steer_the_light_are_solved_again_in_full(solved, tmp_path):
+    """2 % of the pixels spoiled: the refit on the kept tree moves the prediction by more than
+    ROBUST_STILL of the noise, so the levels (and auto's model) are explored again (a later pass's
+    refit may then be kept: its weights move less)."""
+    from pipelines.controllers import solve as solve_module
+
+    scene = copy_scene(solved, tmp_path / "specks")
+    _specks(scene)
+    err = ok(invoke(scene, "solve", "--resolution", RES))
+    rep = _report(scene)["robust"]
+    assert rep["refit_change_sigmas"][0] >= solve_module.ROBUST_STILL, rep
+    assert "robust pass 1: the light refitted" not in err and "robust pass 1:" in err
