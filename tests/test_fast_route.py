@@ -91,8 +91,8 @@ def test_fast_light_matches_the_exhaustive_one(routes):
 @pytest.mark.slow
 def test_fast_light_and_choice_match_the_exhaustive_ones(routes):
     """spot_overcast (a sky: no bright direction), both routes with their defaults
-    (--reflectance auto; ~30 s on the exhaustive route, the visibility ~11 s): the same Lambertian choice and the
-    same light within the noise."""
+    (--reflectance auto; ~30 s on the exhaustive route): the same Lambertian choice and the same
+    light within the noise."""
     fr, out = routes("spot_overcast")
     fast, exact = out[(False, "auto")], out[(True, "auto")]
     assert fast.report["route"] != exact.report["route"]
