@@ -23,17 +23,29 @@ def _controller():
     return ThreadpoolController()
 
 
+KEEP_FREED_BYTES = 1 << 30  # `configure_malloc`: freed heap memory kept for reuse, up to this much
+
+
 @lru_cache(maxsize=1)
-def one_malloc_arena() -> bool:
-    """Have the threads allocate from one glibc heap (mallopt M_ARENA_MAX = 1); False where
-    there is no glibc. glibc gives each thread that allocates its own arena, and what a worker
-    thread frees stays in its arena: the block-sized temporaries of `parallel_blocks` (1-30 MB,
-    below glibc's adaptive mmap threshold) held ~185 MB of teapot_sun_phong's peak RSS at R = 32
-    (`solve`: 1,206 -> 1,024 MiB with one arena; with smaller blocks too, 987 MiB and ~4 % more time,
-    the median of six interleaved pairs; spot_sun 0.78 -> 0.67 GiB and no slower). Numpy's
-    temporaries are few and large, so the threads hardly wait on the one arena's lock. Called
-    before the worker threads first allocate (the CLI calls it at start); a thread that already has
-    an arena keeps it, and glibc may hand such an arena to a later thread too."""
+def configure_malloc() -> bool:
+    """Tune glibc's allocator for a solve's large, short-lived arrays; False where there is no
+    glibc (nothing changed). Called once at start, before the worker threads first allocate (the
+    CLI calls it, so the benchmarks' solves get it, and tests/conftest.py).
+
+    - One heap for all threads (mallopt M_ARENA_MAX = 1). glibc gives each thread that allocates its
+      own arena, and what a worker thread frees stays in its arena: the block-sized temporaries of
+      `parallel_blocks` (1-30 MB) held ~185 MB of teapot_sun_phong's peak RSS at R = 32 (`solve`:
+      1,206 -> 1,024 MiB with one arena; spot_sun 0.78 -> 0.67 GiB and no slower). Numpy's
+      temporaries are few and large, so the threads hardly wait on the one arena's lock. (A thread
+      that already has an arena keeps it.)
+    - Large arrays from that heap, and freed ones kept for the next (M_MMAP_THRESHOLD and
+      M_TRIM_THRESHOLD = KEEP_FREED_BYTES). By default glibc maps each array above 128 kB-32 MB
+      afresh and unmaps it when freed, so every new array of that size faults all its pages in
+      again: a solve makes thousands (leaf sums, tree Gram matrices and their float64 copies, one
+      per level, part and round), and on the 2-core test machines those page faults were a quarter
+      of a whole `solve` (the sample scene: 8.3 -> 6.2 s, the median of three interleaved pairs, the
+      same light and the same peak RSS, 593 / 597 MiB). Peak RSS is the heap's high-water mark, as
+      it was the mapped arrays' (measured in benchmarks/RESULTS.md)."""
     import ctypes
     import sys
 
@@ -42,9 +54,11 @@ def one_malloc_arena() -> bool:
     try:
         libc = ctypes.CDLL(None)
         if not hasattr(libc, "gnu_get_libc_version"):
-            return False  # (musl and others: no arenas to limit)
-        M_ARENA_MAX = -8
-        return bool(libc.mallopt(M_ARENA_MAX, 1))
+            return False  # (musl and others: other allocators)
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
+        ok = bool(libc.mallopt(M_ARENA_MAX, 1))
+        ok &= bool(libc.mallopt(M_MMAP_THRESHOLD, KEEP_FREED_BYTES))
+        return ok & bool(libc.mallopt(M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
     except (OSError, AttributeError):
         return False
 

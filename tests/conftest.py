@@ -19,6 +19,14 @@ import pytest
 DATA_DIR = Path(__file__).parent / "data"
 
 
+def pytest_configure(config):
+    """The allocator as the CLI sets it (`threads.configure_malloc`), for the tests that call the
+    pipelines directly."""
+    from pipelines.threads import configure_malloc
+
+    configure_malloc()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _private_user_cache(tmp_path_factory):
     """The user cache folder (derived data kept between runs, `cubemap._user_cache_dir`) is the

@@ -19,7 +19,7 @@ import click
 
 from pipelines.errors import InputError, OptionError
 from pipelines.model.materials import MODELS
-from pipelines.threads import one_malloc_arena
+from pipelines.threads import configure_malloc
 
 from .console import Console
 from .help_text import SUMMARY, with_examples
@@ -233,7 +233,7 @@ def cli(ctx: click.Context, scene_dir: Path, quiet: bool, lock_wait: float):
     why. Results go to the folder's out/. Try `wavelight COMMAND --help` for a command's options
     and examples, `make demo` for every stage on the sample scene.
     """
-    one_malloc_arena()  # (memory: the worker threads' freed temporaries go back to one heap)
+    configure_malloc()  # (one heap for the worker threads; freed arrays kept for the next: page faults)
     ctx.obj = {"scene": scene_dir, "console": Console(quiet), "lock_wait": lock_wait}
     if ctx.invoked_subcommand is not None and scene_dir.is_dir():
         try:
