@@ -53,7 +53,7 @@ demo: $(STAMP)
 # The suite a laptop runs: everything but the tests marked slow (full-resolution checks against the
 # Mitsuba renders, the Blender renders, ChArUco detection, the exhaustive route on a second scene).
 # The tests run in TEST_JOBS processes (pytest-xdist), each module's tests in one of them (its module
-# fixtures built once); TEST_JOBS=0 runs them in this process. Each process peaks at ~3.3 GB.
+# fixtures built once); TEST_JOBS=0 runs them in this process. Each process peaks at <= ~3.3 GB.
 TEST_JOBS ?= 2
 PYTEST := $(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
 

@@ -42,10 +42,11 @@ def configure_malloc() -> bool:
       M_TRIM_THRESHOLD = KEEP_FREED_BYTES). By default glibc maps each array above 128 kB-32 MB
       afresh and unmaps it when freed, so every new array of that size faults all its pages in
       again: a solve makes thousands (leaf sums, tree Gram matrices and their float64 copies, one
-      per level, part and round), and on the 2-core test machines those page faults were a quarter
-      of a whole `solve` (the sample scene: 8.3 -> 6.2 s, the median of three interleaved pairs, the
-      same light and the same peak RSS, 593 / 597 MiB). Peak RSS is the heap's high-water mark, as
-      it was the mapped arrays' (measured in benchmarks/RESULTS.md)."""
+      per level, part and round), and on the 2-core test machines those page faults were an eighth
+      to a quarter of a whole `solve` (medians of interleaved runs from an empty cache, the same
+      lights to every digit: the sample scene 7.24 -> 6.26 s, teapot_sun_phong 35.5 -> 30.3 s).
+      Peak RSS is the heap's high-water mark, as it was the mapped arrays' (593 -> 597 MiB and
+      981 -> 995-1,014 MiB: freed holes a larger array cannot reuse)."""
     import ctypes
     import sys
 

@@ -3,9 +3,9 @@
 The fast route (the default) fits the light to a weighted sample of transport rows and builds each
 basis' system in its own coefficients (`light.rows`, `light.sampling`); the exhaustive route
 (`SolveOptions(exact=True)`, `solve --exact`) folds every used pixel into dense finest-resolution
-normal equations. Both run the whole controller (`solve_scene`: levels auto, the --reflectance mode
-each test names) on the same photo and the same visibility (cast exactly for every used pixel at R = 32, the
-`forward_render` fixture's), so what differs is the route alone. The fast light must match the
+normal equations. Both run the whole controller (`solve_scene`: levels auto, the --reflectance
+mode each test names) on the same photo and the same visibility (cast exactly for every used pixel
+at R = 32, the `forward_render` fixture's), so what differs is the route alone. The fast light must match the
 exhaustive one within the noise: held-out and relit errors, the probe spheres' errors against the
 true light (`metrics.probe_errors`), the sun's direction, and on the glossy teapot the fitted ks and n.
 
