@@ -28,8 +28,8 @@ KEEP_FREED_BYTES = 1 << 30  # `configure_malloc`: freed heap memory kept for reu
 
 @lru_cache(maxsize=1)
 def configure_malloc() -> bool:
-    """Tune glibc's allocator for a solve's large, short-lived arrays; False where there is no
-    glibc (nothing changed). Called once at start, before the worker threads first allocate (the
+    """Tune memory allocation for a solve's large, short-lived arrays; False where there is no
+    glibc (the allocator unchanged; the huge-page setting below still applies). Called once at start, before the worker threads first allocate (the
     CLI calls it, so the benchmarks' solves get it, and tests/conftest.py).
 
     - One heap for all threads (mallopt M_ARENA_MAX = 1). glibc gives each thread that allocates its
@@ -46,9 +46,24 @@ def configure_malloc() -> bool:
       to a quarter of a whole `solve` (medians of interleaved runs from an empty cache, the same
       lights to every digit: the sample scene 7.24 -> 6.26 s, teapot_sun_phong 35.5 -> 30.3 s).
       Peak RSS is the heap's high-water mark, as it was the mapped arrays' (593 -> 597 MiB and
-      981 -> 995-1,014 MiB: freed holes a larger array cannot reuse)."""
+      981 -> 995-1,014 MiB: freed holes a larger array cannot reuse).
+    - No transparent huge pages asked for new arrays (numpy's madvise(MADV_HUGEPAGE), unless the
+      user set NUMPY_MADVISE_HUGEPAGE). Where the kernel cannot hand out huge pages at once, each
+      such fault tries and fails slowly: on the test machine (THP "madvise", none free) filling a
+      fresh 200 MB array took 1.1-3 s against 0.11-0.16 s with 4 kB pages, and whole solves from an
+      empty cache, interleaved, went bunny_sun 10.1 -> 7.5 s, the sample 9.1 -> 6.6 s, spot_overcast
+      at R = 64 27.3 -> 14.6 s (the same lights and peak RSS)."""
     import ctypes
+    import os
     import sys
+
+    if "NUMPY_MADVISE_HUGEPAGE" not in os.environ:
+        try:
+            from numpy._core.multiarray import _set_madvise_hugepage
+        except ImportError:  # (numpy's private switch moved: its default stays)
+            pass
+        else:
+            _set_madvise_hugepage(False)
 
     if not sys.platform.startswith("linux"):
         return False
