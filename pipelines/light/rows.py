@@ -91,6 +91,13 @@ class Pyramid:
         out.levels = [{lv: (None if a is None else a[:n]) for lv, a in tile.items()} for tile in self.levels]
         return out
 
+    def tail(self, n: int) -> "Pyramid":
+        """The rows from n on (views, no copy), as `head`."""
+        out = self.head(len(self.rows))
+        out.rows = self.rows[n:]
+        out.levels = [{lv: (None if a is None else a[n:]) for lv, a in tile.items()} for tile in self.levels]
+        return out
+
     def set_rows(self, index: np.ndarray, rows: np.ndarray) -> None:
         """Replace some rows in place (their block sums too): every head sees them, and the systems
         projected before are marked stale (`version`) unless corrected (`RowsPart.correct`)."""
@@ -755,6 +762,34 @@ class RowsPart:
                         group=None if self.group is None else self.group[:n], group_scales=self.group_scales,
                         split_specular=self.split_specular, group_ks=self.group_ks)
 
+    def tail(self, n: int, precision: str | None = None) -> "RowsPart":
+        """The rows from n on, each standing for what it stood for here (the weights as they are)."""
+        n = min(int(n), self.n_rows)
+        kd = self.kd[n:] if np.ndim(self.kd) == 2 else self.kd
+        return RowsPart(self.D.tail(n), None if self.S is None else self.S.tail(n), kd, self.ks, self.b[n:],
+                        self.w[n:], self.n_rows - n, precision or self.precision,
+                        group=None if self.group is None else self.group[n:], group_scales=self.group_scales,
+                        split_specular=self.split_specular, group_ks=self.group_ks)
+
+    def head_factor(self, head: "RowsPart") -> float | None:
+        """f when `head` is this part's `head(n)` (its first n rows, each weight f times this one's,
+        the same material and targets), else None."""
+        n = head.n_rows if isinstance(head, RowsPart) else 0
+        if not n or n > self.n_rows or self.group is not None or head.group is not None \
+                or (self.S is None) != (head.S is None) or head._versions() != self._versions():
+            return None
+        for mine, theirs in ((self.D, head.D), (self.S, head.S)):
+            if mine is not None and (theirs.rows.__array_interface__["data"][0] != mine.rows.__array_interface__["data"][0]
+                                     or theirs.rows.strides != mine.rows.strides):
+                return None
+        w = self.w[:n]
+        f = float(head.w.sum() / max(w.sum(), 1e-300))
+        if not (np.array_equal(head.b, self.b[:n]) and np.array_equal(head.kd_eff, self.kd_eff if np.ndim(self.kd) < 2
+                                                                    else self.kd_eff[:n])
+                and np.array_equal(head.ks, self.ks) and np.allclose(head.w, w * f, rtol=1e-12, atol=0)):
+            return None
+        return f
+
     def project(self, P) -> SystemPart:
         """The system in coefficients c of light = P c (P dense or sparse, (N, k))."""
         if not hasattr(P, "toarray"):
@@ -901,6 +936,52 @@ class UnionPart:
 
     def with_scales(self, scales, ks_scales=None):
         return UnionPart(tuple(p.with_scales(scales, ks_scales) for p in self.parts))
+
+
+@dataclass
+class ScaledPart:
+    """`part` with every weight divided by `divisor`: an exploration's head (`RowsPart.head`, its
+    weights scaled up to stand for all of the fit rows) standing for its own rows again, so that its
+    memoised tree systems serve the final solve (`all_rows`)."""
+
+    part: RowsPart
+    divisor: float
+    n_pixels: int
+
+    @property
+    def bb(self) -> np.ndarray:
+        return self.part.bb / self.divisor
+
+    def project_tree(self, tree) -> SystemPart:
+        s = self.part.project_tree(tree)
+        return SystemPart(s.G / self.divisor, s.h / self.divisor, s.bb / self.divisor, self.n_pixels, s.channel_scale)
+
+    def residual(self, light) -> np.ndarray:
+        return self.part.residual(light) / self.divisor
+
+    def relative_rmse(self, light) -> float:
+        return float(np.sqrt(self.residual(light).sum() / max(self.bb.sum(), 1e-300)))
+
+
+def all_rows(fit, held_out, explore=None):
+    """Every row of a sampled system (the fit and the held-out ones) in single precision: what the
+    final light of a chosen tree is solved on (`bases.tree.finish`). When `explore` is the fit rows'
+    single-precision head (`LightSystem.explore`), its rows come from it: the tree systems it
+    memoised while the levels were explored (corrected in place after a recast) are reused, and only
+    the other rows are projected (at the defaults 13,000 of 21,000 rows). The same sums as projecting
+    all rows afresh, added in another order (float32 rounding)."""
+    both = fit.combine(held_out)
+    both = both.in_single() if hasattr(both, "in_single") else both
+    if not (isinstance(fit, RowsPart) and isinstance(explore, RowsPart) and explore.precision == "single"):
+        return both
+    f = fit.head_factor(explore)
+    if f is None:
+        return both
+    parts = [ScaledPart(explore, f, fit.n_pixels)]
+    if explore.n_rows < fit.n_rows:
+        parts.append(fit.tail(explore.n_rows, "single"))
+    held = held_out.in_single() if hasattr(held_out, "in_single") else held_out
+    return UnionPart(tuple(parts) + ((held,) if held.n_pixels > 0 else ()))
 
 
 def lobe_pieces(part, tree: HaarTree) -> dict | None:

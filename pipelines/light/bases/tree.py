@@ -18,6 +18,7 @@ import numpy as np
 from .. import haar
 from ..cubemap import CubeMap
 from ..haar import HaarTree
+from ..rows import all_rows
 from ..solution import ZERO_TOL, Level, LightSolution, _rmse, _Stopper, observability, solve_nonnegative
 from ..system import LightSystem
 
@@ -133,10 +134,9 @@ def finish(ne: LightSystem, cube: CubeMap, solution: LightSolution) -> LightSolu
         return solution
     t0 = time.perf_counter()
     best = solution.levels[solution.chosen]
-    both = ne.fit.combine(ne.held_out)
-    # (sampled rows: projected in float32, half the time of float64, the rows explained as well;
-    # the exact route's dense parts stay as they are)
-    both = both.in_single() if hasattr(both, "in_single") else both
+    # (sampled rows: projected in float32, half the time of float64, the rows explained as well, the
+    # exploration's head taken from its memo; the exact route's dense parts stay as they are)
+    both = all_rows(ne.fit, ne.held_out, ne.explore)
     P = haar.leaf_matrix(best.tree)
     x, info = solve_nonnegative(both.project_tree(best.tree), _leaf_guess(best, P))
     light = np.asarray(P @ x)
