@@ -196,6 +196,33 @@ def test_the_fits_diffuse_reflectance_follows_the_coating(distribution):
 
 
 @pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+def test_the_shipped_fdr_grid_is_the_quadratures(distribution, monkeypatch):
+    """`coating_tables` (tools/make_coating_tables.py) holds the default IOR's Fdr on the fit's grid:
+    grid points across its range (the smallest alpha, the fits' usual range, alpha 1 and the point
+    above it) are the quadrature's values, and the interpolated Fdr and slope at off-grid alphas are
+    those computed without the table; another IOR is computed."""
+    from pipelines.model import coating_tables as ct
+
+    values = ct.FDR_GRID[distribution]
+    assert ct.FDR_IOR == mf.DEFAULT_IOR and ct.FDR_STEP == mf._LOG_ALPHA_STEP
+    assert np.exp(ct.FDR_FIRST * ct.FDR_STEP) <= mf.MIN_ALPHA and np.exp((ct.FDR_FIRST + len(values) - 1) * ct.FDR_STEP) > 1.0
+    for k in (ct.FDR_FIRST, -92, -60, -46, -30, -12, 0, ct.FDR_FIRST + len(values) - 1):
+        a = float(np.exp(k * ct.FDR_STEP))
+        assert values[k - ct.FDR_FIRST] == pytest.approx(mf._grid_fdr(a, mf.DEFAULT_IOR, distribution), rel=1e-12), k
+    shipped = [mf.diffuse_reflectance_interpolated(a, mf.DEFAULT_IOR, distribution) for a in (0.0071, 0.13, 0.41)]
+    asked = []
+    quadrature = mf._grid_fdr
+    monkeypatch.setattr(mf, "_grid_fdr", lambda a, eta, d: asked.append(eta) or 0.5)
+    mf.diffuse_reflectance_interpolated(0.29, mf.DEFAULT_IOR, distribution)
+    assert asked == []  # (from the table)
+    assert mf.diffuse_reflectance_interpolated(0.13, 1.7, distribution)[0] == 0.5 and asked == [1.7, 1.7]
+    monkeypatch.setattr(mf, "_grid_fdr", quadrature)
+    monkeypatch.setattr(ct, "FDR_GRID", {})
+    computed = [mf.diffuse_reflectance_interpolated(a, mf.DEFAULT_IOR, distribution) for a in (0.0071, 0.13, 0.41)]
+    np.testing.assert_allclose(shipped, computed, rtol=1e-12)
+
+
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
 def test_the_float32_inner_loops_are_the_reference_functions(distribution):
     """The in-place float32 versions used per (pixel, texel) pair (`lobe_factors_f32`,
     `smith_g1_f32`, `Coating.transmittance_f32`, `lobe_values` without temporaries) give the

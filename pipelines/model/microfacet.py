@@ -403,9 +403,27 @@ def specular_albedo_interpolated(alpha: float, eta: float, distribution: str) ->
 def diffuse_reflectance_interpolated(alpha: float, eta: float, distribution: str) -> tuple[float, float]:
     """Fdr (the coating's reflectance of the diffuse base's light from below, as `coating`) at alpha
     (> 0), linear in log alpha between cached tables on the grid of `specular_albedo_interpolated`,
-    and its derivative with respect to log alpha."""
-    return _log_alpha_grid(alpha, lambda a: float(np.mean(_reflectance_cached(a, 1.0 / float(eta), distribution)
-                                                          * _MU) * 2.0))
+    and its derivative with respect to log alpha. At the default IOR the grid's values are read from
+    `coating_tables` (each is a 128^2-node quadrature, 0.1-0.2 s; a fit visits tens of them)."""
+    return _log_alpha_grid(alpha, lambda a: _fdr_on_grid(a, float(eta), distribution))
+
+
+def _grid_fdr(alpha: float, eta: float, distribution: str) -> float:
+    """Fdr at alpha as `coating` computes it (2 x the mean over the table's cosines of mu R_int)."""
+    return float(np.mean(_reflectance_cached(alpha, 1.0 / float(eta), distribution) * _MU) * 2.0)
+
+
+def _fdr_on_grid(alpha: float, eta: float, distribution: str) -> float:
+    """`_grid_fdr` at a grid alpha exp(k _LOG_ALPHA_STEP): from `coating_tables` when it holds it (the
+    default IOR, k in its range), else computed."""
+    from . import coating_tables as ct
+
+    values = ct.FDR_GRID.get(distribution)
+    if values is not None and eta == ct.FDR_IOR and _LOG_ALPHA_STEP == ct.FDR_STEP:
+        k = int(round(np.log(alpha) / _LOG_ALPHA_STEP))
+        if abs(np.log(alpha) / _LOG_ALPHA_STEP - k) < 1e-9 and 0 <= k - ct.FDR_FIRST < len(values):
+            return values[k - ct.FDR_FIRST]
+    return _grid_fdr(alpha, eta, distribution)
 
 
 GRAZING_NV = 0.2  # views with N.v below this get the lobe's energy cap (`grazing_cap`)
