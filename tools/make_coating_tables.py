@@ -4,10 +4,10 @@ default IOR, for both distributions.
 Usage:
     PYTHONPATH=. .venv/bin/python tools/make_coating_tables.py
 
-`microfacet.diffuse_reflectance_interpolated` (the plastic LM's Fdr at any alpha) interpolates Fdr
-between the grid's alphas exp(k _LOG_ALPHA_STEP). Each grid value is a 128 x 128-node quadrature of
-the internal reflectance over 64 cosines (`microfacet._coating_integral` with 1 / eta), 0.1-0.2 s,
-and a fit visits tens of them. At the default IOR the values are read from the generated module
+`microfacet.diffuse_reflectance_interpolated` (Fdr and its slope in log alpha at any alpha: the plastic
+fit's uncertainties, `plastic_fit.base_scale_slope`) interpolates Fdr between the grid's alphas
+exp(k _LOG_ALPHA_STEP). Each grid value is a 128 x 128-node quadrature of the internal reflectance over
+64 cosines (`microfacet._coating_integral` with 1 / eta), 0.1-0.2 s, and every fit reads two. At the default IOR the values are read from the generated module
 instead; any other IOR computes them as before. The module holds exactly the values the quadrature
 gives (Python's float repr round-trips), and tests/test_plastic.py recomputes some of them.
 """

@@ -404,7 +404,7 @@ def diffuse_reflectance_interpolated(alpha: float, eta: float, distribution: str
     """Fdr (the coating's reflectance of the diffuse base's light from below, as `coating`) at alpha
     (> 0), linear in log alpha between cached tables on the grid of `specular_albedo_interpolated`,
     and its derivative with respect to log alpha. At the default IOR the grid's values are read from
-    `coating_tables` (each is a 128^2-node quadrature, 0.1-0.2 s; a fit visits tens of them)."""
+    `coating_tables` (each is a 128^2-node quadrature, 0.1-0.2 s; every plastic fit reads two)."""
     return _log_alpha_grid(alpha, lambda a: _fdr_on_grid(a, float(eta), distribution))
 
 
