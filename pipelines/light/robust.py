@@ -35,9 +35,11 @@ with what the model can be expected to miss there:
   noise alone (no edge term), so a clipped highlight the model cannot reach is down-weighted like
   any pixel it cannot explain.
 
-The controller (`controllers/solve.py`) solves the light again under these weights (the first
-time, `--reflectance auto` chooses its model again) while they move at least 1 % of the squared error, and keeps that solve only if its plain error over every usable
-pixel rises by at most 2 % (else the down-weighted pixels were carrying the light).
+The controller (`controllers/solve.py`) solves the light again under these weights while they
+move at least 1 % of the squared error (`--reflectance auto` chooses its model again once: after a
+Lambertian first choice, once the weights settle), and keeps that solve only if its plain error
+over every usable pixel rises by at most 2 % (else the down-weighted pixels were carrying the
+light).
 """
 
 from __future__ import annotations
